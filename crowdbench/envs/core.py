@@ -1,0 +1,242 @@
+"""Batched replay simulator: B environments, A robots each, M padded humans.
+
+Every tensor is batch-first. One :meth:`CrowdSim.step` advances all environments with
+tensor ops; resets take a boolean mask. Humans are replayed from a :class:`Scene` and
+never react to the robot (the robot is invisible, SPEC section 3).
+
+Geometry (SPEC section 3):
+- clearance ``d`` = centre distance - robot radius - human radius;
+- collision: ``d < 0`` at any moment of the step, tested on the linear motion of both
+  bodies over the step (closest approach of the relative segment), not only at step ends;
+- danger: ``0 <= d < 0.2`` at the end of a step; success: distance to goal < robot radius.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+
+from crowdbench.data.scenes import Scene
+
+RUNNING, SUCCESS, COLLISION, TIMEOUT = 0, 1, 2, 3
+OUTCOMES = {SUCCESS: "success", COLLISION: "collision", TIMEOUT: "timeout"}
+_FAR = 1e6  # clearance reported when no human is present
+
+
+@dataclass
+class SimConfig:
+    dt: float = 0.25
+    v_max: float = 1.0
+    robot_radius: float = 0.2
+    human_radius: float = 0.1
+    danger_dist: float = 0.2
+    sensing_range: float = 5.0
+    time_limit: int = 100  # steps (25 s at dt = 0.25)
+    r_reach: float = 1.0
+    r_fail: float = -0.25
+    danger_dt_scaling: bool = False  # CrowdNav multiplies the danger penalty by dt
+    frame: str = "rotate"  # observation frame: rotate | translate | world
+    start_radius: float = 4.0
+    time_base: str = "true"  # ETH row period: true (2/3 s) or 0.4
+
+    def __post_init__(self):
+        if self.frame not in ("rotate", "translate", "world"):
+            raise ValueError(f"unknown frame {self.frame!r}; valid: rotate, translate, world")
+
+
+@dataclass
+class StepInfo:
+    reward: torch.Tensor  # [B, A]
+    terminated: torch.Tensor  # [B, A] success or collision
+    truncated: torch.Tensor  # [B, A] timeout
+    outcome: torch.Tensor  # [B, A] RUNNING/SUCCESS/COLLISION/TIMEOUT decided this step
+    clearance: torch.Tensor  # [B, A] min clearance at the end of the step
+    swept_clearance: torch.Tensor  # [B, A] min clearance over the step's motion
+    active: torch.Tensor  # [B, A] the robot moved during this step
+    extra: dict = field(default_factory=dict)
+
+
+def segment_min_distance(a0: torch.Tensor, a1: torch.Tensor) -> torch.Tensor:
+    """Min norm of the relative vector moving linearly from ``a0`` to ``a1`` (``[..., 2]``).
+
+    Both bodies move at constant velocity over the step, so their offset is linear in
+    time and the closest approach is the point of the segment nearest to the origin.
+    """
+    d = a1 - a0
+    dd = (d * d).sum(-1)
+    s = (-(a0 * d).sum(-1) / dd.clamp_min(1e-12)).clamp(0.0, 1.0)
+    return (a0 + s.unsqueeze(-1) * d).norm(dim=-1)
+
+
+def to_local(vec: torch.Tensor, heading: torch.Tensor) -> torch.Tensor:
+    """Rotate world vectors ``[..., 2]`` into a frame whose x-axis is ``heading`` (unit ``[..., 2]``)."""
+    c, s = heading[..., 0], heading[..., 1]
+    x, y = vec[..., 0], vec[..., 1]
+    return torch.stack((c * x + s * y, -s * x + c * y), -1)
+
+
+def to_world(vec: torch.Tensor, heading: torch.Tensor) -> torch.Tensor:
+    c, s = heading[..., 0], heading[..., 1]
+    x, y = vec[..., 0], vec[..., 1]
+    return torch.stack((c * x - s * y, s * x + c * y), -1)
+
+
+class CrowdSim:
+    """``B`` environments replaying one scene; ``A`` = 1 robot per environment."""
+
+    def __init__(self, scene: Scene, batch_size: int, cfg: SimConfig | None = None, n_agents: int = 1):
+        self.scene = scene
+        self.cfg = cfg or SimConfig()
+        if abs(self.cfg.dt - scene.dt) > 1e-9:
+            raise ValueError(f"scene resampled at dt={scene.dt}, simulator dt={self.cfg.dt}")
+        if scene.n_steps <= self.cfg.time_limit + 1:
+            raise ValueError(f"scene {scene.name} is shorter than the time limit ({self.cfg.time_limit} steps)")
+        self.B, self.A, self.M = batch_size, n_agents, scene.max_humans
+        B, A = batch_size, n_agents
+        self.t = torch.zeros(B, dtype=torch.long)  # scene grid index
+        self.steps = torch.zeros(B, dtype=torch.long)
+        self.pos = torch.zeros(B, A, 2)
+        self.vel = torch.zeros(B, A, 2)
+        self.goal = torch.zeros(B, A, 2)
+        self.start = torch.zeros(B, A, 2)
+        self.heading = torch.zeros(B, A, 2)
+        self.heading[..., 0] = 1.0
+        self.outcome = torch.full((B, A), TIMEOUT, dtype=torch.long)  # not started = finished
+        self.radius_sum = self.cfg.robot_radius + self.cfg.human_radius
+
+    # ------------------------------------------------------------------ episodes
+    @property
+    def last_start(self) -> int:
+        """Latest grid index at which an episode still fits in the recording."""
+        return self.scene.n_steps - 1 - self.cfg.time_limit
+
+    def start_goal(self, angle: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Start and goal on the ``start_radius`` circle around the scene centre, diametrically opposed."""
+        u = torch.stack((torch.cos(angle), torch.sin(angle)), -1)
+        c = self.scene.centre
+        return c + self.cfg.start_radius * u, c - self.cfg.start_radius * u
+
+    def reset(self, mask: torch.Tensor, t0: torch.Tensor, angle: torch.Tensor) -> None:
+        """Reset the environments where ``mask`` ([B] bool) is set.
+
+        ``t0`` and ``angle`` are ``[B]`` (only the masked entries are used): the scene grid
+        index at which the episode starts and the start angle on the circle.
+        """
+        if (t0[mask] < 0).any() or (t0[mask] > self.last_start).any():
+            raise ValueError(f"start index outside [0, {self.last_start}] for scene {self.scene.name}")
+        start, goal = self.start_goal(angle.to(torch.float32))
+        m2 = mask.view(-1, 1, 1)
+        self.t = torch.where(mask, t0, self.t)
+        self.steps = torch.where(mask, 0, self.steps)
+        self.start = torch.where(m2, start.unsqueeze(1), self.start)
+        self.pos = torch.where(m2, start.unsqueeze(1), self.pos)
+        self.goal = torch.where(m2, goal.unsqueeze(1), self.goal)
+        self.vel = torch.where(m2, 0.0, self.vel)
+        self.outcome = torch.where(mask.view(-1, 1), RUNNING, self.outcome)
+        self._update_heading()
+
+    def _update_heading(self) -> None:
+        to_goal = self.goal - self.pos
+        dist = to_goal.norm(dim=-1, keepdim=True)
+        # at the goal the direction is undefined: keep the previous frame
+        self.heading = torch.where(dist > 1e-6, to_goal / dist.clamp_min(1e-6), self.heading)
+
+    # ------------------------------------------------------------------ humans
+    def humans(self, t: torch.Tensor | None = None):
+        """Humans at grid index ``t`` ([B]): position, velocity ``[B, M, 2]``, valid ``[B, M]``."""
+        t = self.t if t is None else t
+        return self.scene.pos[t], self.scene.vel[t], self.scene.valid[t]
+
+    def clearance(self, pos: torch.Tensor, hpos: torch.Tensor, hvalid: torch.Tensor) -> torch.Tensor:
+        """Per-human clearance ``[B, A, M]`` (``_FAR`` on padding)."""
+        gap = (hpos.unsqueeze(1) - pos.unsqueeze(2)).norm(dim=-1) - self.radius_sum
+        return gap.masked_fill(~hvalid.unsqueeze(1), _FAR)
+
+    # ------------------------------------------------------------------ step
+    def clip_action(self, action: torch.Tensor) -> torch.Tensor:
+        v_max = self.cfg.v_max
+        a = action.clamp(-v_max, v_max)
+        speed = a.norm(dim=-1, keepdim=True)
+        return a * (v_max / speed.clamp_min(v_max))
+
+    def step(self, action: torch.Tensor, frame: str | None = None) -> StepInfo:
+        """Advance every running environment by one step.
+
+        ``action`` is ``[B, A, 2]`` velocity in the observation frame (``frame``, default
+        the config's) and is converted to world coordinates here. Finished environments
+        stay frozen until reset and receive zero reward.
+        """
+        if torch.isnan(action).any():
+            raise ValueError("action contains NaN")
+        cfg = self.cfg
+        frame = frame or cfg.frame
+        act = to_world(action, self.heading) if frame == "rotate" else action
+        vel = self.clip_action(act)
+        active = self.outcome == RUNNING  # [B, A]
+        vel = vel * active.unsqueeze(-1)
+        new_pos = self.pos + vel * cfg.dt
+        env_active = active.any(-1)
+        t1 = torch.where(env_active, self.t + 1, self.t)
+
+        # swept test: humans present at t1, moving from their previous position
+        h1, hv1 = self.scene.pos[t1], self.scene.valid[t1]
+        h0 = self.scene.prev[t1]
+        rel0 = h0.unsqueeze(1) - self.pos.unsqueeze(2)  # [B, A, M, 2]
+        rel1 = h1.unsqueeze(1) - new_pos.unsqueeze(2)
+        swept = segment_min_distance(rel0, rel1) - self.radius_sum
+        swept = swept.masked_fill(~hv1.unsqueeze(1), _FAR).amin(-1)  # M >= 1 (see pack_slots)
+        end = self.clearance(new_pos, h1, hv1).amin(-1)
+
+        steps = self.steps + env_active.long()
+        collision = active & (swept < 0)
+        success = active & ~collision & ((self.goal - new_pos).norm(dim=-1) < cfg.robot_radius)
+        timeout = active & ~collision & ~success & (steps >= cfg.time_limit).unsqueeze(-1)
+
+        danger = -0.1 + end.clamp_min(0.0) / 2
+        if cfg.danger_dt_scaling:
+            danger = danger * cfg.dt
+        reward = (
+            torch.where(end < cfg.danger_dist, danger, 0.0)
+            + cfg.r_reach * success
+            + cfg.r_fail * (collision | timeout)
+        ) * active
+
+        outcome = torch.where(success, SUCCESS, torch.where(collision, COLLISION, torch.where(timeout, TIMEOUT, 0)))
+        self.outcome = torch.where(active, outcome, self.outcome)
+        self.pos, self.vel, self.t, self.steps = new_pos, vel, t1, steps
+        self._update_heading()
+        return StepInfo(
+            reward=reward,
+            terminated=success | collision,
+            truncated=timeout,
+            outcome=outcome,
+            clearance=end,
+            swept_clearance=swept,
+            active=active,
+        )
+
+    # ------------------------------------------------------------------ observation
+    def observe(self, frame: str | None = None) -> dict[str, torch.Tensor]:
+        """Observation in the robot-relative frame (SPEC section 3).
+
+        - ``robot`` ``[B, A, 6]``: ``[px, py, vx, vy, gx, gy]`` (position 0 in relative frames);
+        - ``humans`` ``[B, A, M, 4]``: ``[px, py, vx, vy]`` of every human, zero where unobserved;
+        - ``humans_mask`` ``[B, A, M]``: present and within the sensing range (centre distance).
+        """
+        frame = frame or self.cfg.frame
+        hpos, hvel, hvalid = self.humans()
+        rel = hpos.unsqueeze(1) - self.pos.unsqueeze(2)  # [B, A, M, 2]
+        seen = hvalid.unsqueeze(1) & (rel.norm(dim=-1) <= self.cfg.sensing_range)
+        hv = hvel.unsqueeze(1).expand_as(rel)
+        goal, vel, pos = self.goal - self.pos, self.vel, self.pos
+        if frame == "rotate":
+            hd = self.heading.unsqueeze(2)
+            rel, hv = to_local(rel, hd), to_local(hv, hd)
+            goal, vel = to_local(goal, self.heading), to_local(vel, self.heading)
+        if frame == "world":
+            rel, goal = rel + self.pos.unsqueeze(2), self.goal
+        else:
+            pos = torch.zeros_like(pos)
+        humans = torch.cat((rel, hv), -1) * seen.unsqueeze(-1)
+        return {"robot": torch.cat((pos, vel, goal), -1), "humans": humans, "humans_mask": seen}
