@@ -153,6 +153,11 @@ class CrowdSim:
         gap = (hpos.unsqueeze(1) - pos.unsqueeze(2)).norm(dim=-1) - self.radius_sum
         return gap.masked_fill(~hvalid.unsqueeze(1), _FAR)
 
+    def min_clearance(self) -> torch.Tensor:
+        """Current clearance to the nearest human, ``[B, A]``."""
+        hpos, _, hvalid = self.humans()
+        return self.clearance(self.pos, hpos, hvalid).amin(-1)
+
     # ------------------------------------------------------------------ step
     def clip_action(self, action: torch.Tensor) -> torch.Tensor:
         v_max = self.cfg.v_max

@@ -1,0 +1,129 @@
+"""``crowdbench`` command line: Hydra-composed configs, one-line errors for bad input."""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import fields
+from pathlib import Path
+
+from crowdbench.envs.core import SimConfig
+
+CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
+COMMANDS = ("eval",)
+BASELINES = ("orca", "straight")
+
+
+class UsageError(Exception):
+    """Bad input from the user: printed as one line, exit code 2."""
+
+
+def compose(overrides: list[str]):
+    """Compose ``configs/config.yaml`` with Hydra overrides; struct mode rejects unknown keys."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+    from hydra.errors import HydraException
+    from omegaconf import OmegaConf
+
+    if not CONFIG_DIR.is_dir():
+        raise UsageError(f"config directory not found: {CONFIG_DIR} (install with pip install -e .)")
+    try:
+        with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base=None):
+            cfg = hydra_compose(config_name="config", overrides=overrides)
+    except HydraException as e:
+        raise UsageError(_hydra_message(e, overrides)) from None
+    OmegaConf.set_struct(cfg, True)
+    return cfg
+
+
+def _hydra_message(err: Exception, overrides: list[str]) -> str:
+    """Turn Hydra's multi-line errors into one line naming the key and the valid choices."""
+    from omegaconf import OmegaConf
+
+    text = " ".join(str(err).split())
+    if "Could not find" in text and "Available options" in text:
+        group = text.split("Could not find '")[1].split("/")[0]
+        opts = sorted(p.stem for p in (CONFIG_DIR / group).glob("*.yaml"))
+        return f"unknown {group} {text.split('/')[1].split(chr(39))[0]!r}; valid choices: {', '.join(opts)}"
+    if "Could not override" in text or "not in struct" in text or "Key '" in text:
+        key = text.split("Could not override '")[1].split("'")[0] if "Could not override" in text else text
+        parent = key.rsplit(".", 1)[0] if "." in key else ""
+        with_defaults = [o for o in overrides if "=" in o and "." not in o.split("=")[0]]
+        from hydra import compose as hydra_compose
+        from hydra import initialize_config_dir
+
+        with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base=None):
+            base = hydra_compose(config_name="config", overrides=[o for o in with_defaults if o.split("=")[0] != key])
+        node = OmegaConf.select(base, parent) if parent else base
+        valid = ", ".join(sorted(node.keys())) if node is not None and hasattr(node, "keys") else "?"
+        return f"unknown config key {key!r}; valid keys{' under ' + repr(parent) if parent else ''}: {valid}"
+    return f"bad override: {text}"
+
+
+def sim_overrides(env_cfg) -> dict:
+    names = {f.name for f in fields(SimConfig)}
+    return {k: (str(v) if k == "time_base" else v) for k, v in env_cfg.items() if k in names}
+
+
+def make_policy(name: str, cfg):
+    if name == "straight":
+        from crowdbench.baselines.straight import StraightToGoal
+
+        return StraightToGoal(v_max=cfg.env.v_max, dt=cfg.env.dt)
+    if name == "orca":
+        from crowdbench.baselines.orca import ORCA
+
+        return ORCA(v_max=cfg.env.v_max, dt=cfg.env.dt)
+    if name.endswith(".pt") or Path(name).exists():
+        raise UsageError(f"policy {name!r}: checkpoint evaluation arrives with training (issue 3)")
+    raise UsageError(f"unknown policy {name!r}; valid: {', '.join(BASELINES)} or a checkpoint path")
+
+
+def output_dir(cfg, command: str) -> Path:
+    if cfg.out:
+        return Path(cfg.out)
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    return Path("outputs") / f"{command}-{Path(str(cfg.policy)).stem}-{stamp}"
+
+
+def cmd_eval(overrides: list[str]) -> int:
+    from crowdbench.data.scenes import check_scene
+    from crowdbench.eval import evaluate, format_table
+
+    cfg = compose(overrides)
+    scenes = list(cfg.eval.scenes) if not isinstance(cfg.eval.scenes, str) else [cfg.eval.scenes]
+    try:
+        scenes = [check_scene(s) for s in scenes]
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+    episodes = cfg.eval.episodes
+    if episodes is not None and (not isinstance(episodes, int) or episodes < 1):
+        raise UsageError(f"eval.episodes must be a positive integer or null, got {episodes!r}")
+    policy = make_policy(str(cfg.policy), cfg)
+    out = output_dir(cfg, "eval")
+    results = evaluate(policy, scenes, episodes, out_dir=out, save_episodes=bool(cfg.eval.save_episodes),
+                       sim_overrides=sim_overrides(cfg.env), meta={"seed": cfg.seed, "overrides": overrides})
+    print(format_table(results))
+    print(f"results written to {out / 'results.json'}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] in ("-h", "--help"):
+        print("usage: crowdbench {eval} [key=value ...]\n"
+              "  crowdbench eval policy=orca|straight [eval.scenes=[eth,hotel]] [eval.episodes=N] "
+              "[eval.save_episodes=true] [out=DIR]")
+        return 0
+    command, overrides = argv[0], argv[1:]
+    try:
+        if command not in COMMANDS:
+            raise UsageError(f"unknown command {command!r}; valid commands: {', '.join(COMMANDS)}")
+        return {"eval": cmd_eval}[command](overrides)
+    except UsageError as e:
+        print(f"crowdbench: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

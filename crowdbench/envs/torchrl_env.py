@@ -1,0 +1,121 @@
+"""TorchRL ``EnvBase`` over the batched core: the fast path used for training and evaluation.
+
+All ``B`` environments live in one env with ``batch_size=[B]``; agent keys sit under the
+``agents`` group (``[B, A, ...]``) so multi-agent self-play extends the same layout.
+Partial resets follow TorchRL's ``_reset`` mask; episodes are drawn by the training
+sampler, or taken in order from a fixed episode list (evaluation).
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from crowdbench.data.scenes import load_scene
+from crowdbench.envs.core import CrowdSim, SimConfig
+from crowdbench.envs.policy import GROUP
+from crowdbench.envs.protocol import TrainSampler
+
+
+class CrowdEnv(EnvBase):
+    """``B`` robots navigating one replayed scene.
+
+    Args:
+        scene: scene name (``crowdbench.data.SCENES``).
+        batch: number of parallel environments ``B``.
+        cfg: simulator configuration.
+        seed: seed of the training sampler (random start time and angle).
+        episodes: optional ``(t0 [E], angle [E])``: a fixed list replayed in order
+            (episode ``i`` goes to the ``i``-th environment that resets); wraps around.
+    """
+
+    batch_locked = True
+
+    def __init__(self, scene: str = "students001", batch: int = 1, cfg: SimConfig | None = None,
+                 seed: int = 0, episodes: tuple[torch.Tensor, torch.Tensor] | None = None):
+        cfg = cfg or SimConfig()
+        super().__init__(batch_size=torch.Size([batch]), device="cpu")
+        self.cfg = cfg
+        self.sim = CrowdSim(load_scene(scene, cfg.dt, cfg.time_base), batch, cfg)
+        self.sampler = TrainSampler(self.sim.last_start, seed)
+        self.episodes = episodes
+        self._next_episode = 0
+        self._make_specs()
+
+    @property
+    def n_agents(self) -> int:
+        return self.sim.A
+
+    def _make_specs(self) -> None:
+        B, A, M, v = self.batch_size[0], self.sim.A, self.sim.M, self.cfg.v_max
+        agent_obs = Composite(
+            observation=Composite(
+                robot=Unbounded((B, A, 6)),
+                humans=Unbounded((B, A, M, 4)),
+                humans_mask=Categorical(2, (B, A, M), dtype=torch.bool),
+                shape=(B, A),
+            ),
+            info=Composite(
+                outcome=Categorical(4, (B, A), dtype=torch.long),
+                clearance=Unbounded((B, A)),
+                shape=(B, A),
+            ),
+            shape=(B, A),
+        )
+        self.observation_spec = Composite({GROUP: agent_obs}, shape=(B,))
+        self.action_spec = Composite({GROUP: Composite(action=Bounded(-v, v, (B, A, 2)), shape=(B, A))}, shape=(B,))
+        self.reward_spec = Composite({GROUP: Composite(reward=Unbounded((B, A, 1)), shape=(B, A))}, shape=(B,))
+        flag = lambda *s: Categorical(2, s, dtype=torch.bool)  # noqa: E731
+        self.done_spec = Composite(
+            done=flag(B, 1), terminated=flag(B, 1), truncated=flag(B, 1),
+            **{GROUP: Composite(done=flag(B, A, 1), terminated=flag(B, A, 1), truncated=flag(B, A, 1), shape=(B, A))},
+            shape=(B,),
+        )
+
+    # ------------------------------------------------------------------ episodes
+    def _draw(self, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+        if self.episodes is None:
+            return self.sampler(n)
+        t0, angle = self.episodes
+        idx = (self._next_episode + torch.arange(n)) % len(t0)
+        self._next_episode += n
+        return t0[idx], angle[idx]
+
+    def _observation(self, outcome: torch.Tensor, clearance: torch.Tensor) -> TensorDict:
+        B, A = self.batch_size[0], self.sim.A
+        agents = TensorDict({"observation": self.sim.observe(), "info": {"outcome": outcome, "clearance": clearance}},
+                            batch_size=(B, A))
+        return TensorDict({GROUP: agents}, batch_size=(B,))
+
+    def _reset(self, tensordict: TensorDictBase | None, **kwargs) -> TensorDictBase:
+        B = self.batch_size[0]
+        mask = torch.ones(B, dtype=torch.bool)
+        if tensordict is not None and "_reset" in tensordict.keys():
+            mask = tensordict["_reset"].reshape(B, -1).any(-1)
+        t0 = torch.zeros(B, dtype=torch.long)
+        angle = torch.zeros(B)
+        n = int(mask.sum())
+        t0[mask], angle[mask] = self._draw(n)
+        self.sim.reset(mask, t0, angle)
+        A = self.sim.A
+        out = self._observation(self.sim.outcome.clone(), self.sim.min_clearance())
+        false = torch.zeros(B, 1, dtype=torch.bool)
+        out.update({"done": false, "terminated": false.clone(), "truncated": false.clone()})
+        out[GROUP].update({k: torch.zeros(B, A, 1, dtype=torch.bool) for k in ("done", "terminated", "truncated")})
+        return out
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        info = self.sim.step(tensordict[GROUP, "action"])
+        out = self._observation(info.outcome, info.clearance)
+        term, trunc = info.terminated.unsqueeze(-1), info.truncated.unsqueeze(-1)
+        out[GROUP].update({"reward": info.reward.unsqueeze(-1), "terminated": term, "truncated": trunc,
+                           "done": term | trunc})
+        # an environment is done when all its agents are; truncated if not all terminated
+        done, terminated = (term | trunc).all(1), term.all(1)
+        out.update({"terminated": terminated, "truncated": done & ~terminated, "done": done})
+        return out
+
+    def _set_seed(self, seed: int | None) -> None:
+        self.sampler = TrainSampler(self.sim.last_start, 0 if seed is None else seed)

@@ -1,0 +1,212 @@
+"""The evaluation protocol: saved episode list -> batched rollout -> metrics with 95% CIs -> results JSON.
+
+All episodes of a scene run in one batched simulator (``B`` = number of episodes), so a
+policy is called once per time step for the whole list. Metric definitions: docs/protocol.md.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict
+from pathlib import Path
+
+import torch
+
+from crowdbench.data.scenes import check_scene, load_scene
+from crowdbench.envs.core import OUTCOMES, SUCCESS, CrowdSim, SimConfig
+from crowdbench.envs.policy import Policy, obs_tensordict
+from crowdbench.envs.protocol import PAPER_SCENES, PROTOCOL_VERSION, ProtocolSpec, load_episodes
+
+Z95 = 1.959963984540054
+PERSONAL_SPACE = 0.45  # m, surface gap
+
+
+def mean_ci(x: torch.Tensor) -> dict:
+    """Mean with a normal-approximation 95% interval (``n`` >= 30 in the protocol)."""
+    x = x.double()
+    n = x.numel()
+    if n == 0:
+        return {"mean": None, "ci95": [None, None], "n": 0}
+    m = x.mean().item()
+    h = Z95 * x.std().item() / math.sqrt(n) if n > 1 else 0.0
+    return {"mean": m, "ci95": [m - h, m + h], "n": n}
+
+
+def rate_ci(k: int, n: int) -> dict:
+    """Proportion with the Wilson score 95% interval (well-behaved at 0 and 1)."""
+    if n == 0:
+        return {"mean": None, "ci95": [None, None], "n": 0}
+    p = k / n
+    den = 1 + Z95**2 / n
+    centre = (p + Z95**2 / (2 * n)) / den
+    half = Z95 * math.sqrt(p * (1 - p) / n + Z95**2 / (4 * n * n)) / den
+    return {"mean": p, "ci95": [max(0.0, centre - half), min(1.0, centre + half)], "n": n}
+
+
+def select_episodes(saved: dict, n: int | None) -> list[dict]:
+    """The whole list, or ``n`` episodes evenly strided over it (not the official protocol)."""
+    eps = saved["episodes"]
+    if n is None or n >= len(eps):
+        return eps
+    if n < 1:
+        raise ValueError(f"eval.episodes must be >= 1, got {n}")
+    idx = torch.linspace(0, len(eps) - 1, n).round().long().unique()
+    return [eps[i] for i in idx.tolist()]
+
+
+@torch.no_grad()
+def rollout(policy: Policy, scene: str, episodes: list[dict], cfg: SimConfig, recorder=None) -> dict:
+    """Run ``episodes`` of ``scene`` in one batch; return per-step traces ``[T, B]``."""
+    sim = CrowdSim(load_scene(scene, cfg.dt, cfg.time_base), len(episodes), cfg)
+    B = sim.B
+    t0 = torch.tensor([e["t0"] for e in episodes])
+    angle = torch.tensor([e["angle"] for e in episodes], dtype=torch.float64)
+    everyone = torch.ones(B, dtype=torch.bool)
+    sim.reset(everyone, t0, angle)
+    policy.reset(everyone)
+    xy, clear, swept, reward, active = [sim.pos[:, 0].clone()], [], [], [], []
+    clear0 = sim.min_clearance()[:, 0]
+    for _ in range(cfg.time_limit):
+        td = obs_tensordict(sim.observe(policy.frame), B)
+        action = policy.act(td)
+        if recorder is not None:
+            recorder(sim, td, action)
+        info = sim.step(action, frame=policy.frame)
+        xy.append(sim.pos[:, 0].clone())
+        clear.append(info.clearance[:, 0])
+        swept.append(info.swept_clearance[:, 0])
+        reward.append(info.reward[:, 0])
+        active.append(info.active[:, 0])
+        if not (sim.outcome == 0).any():
+            break
+    return {
+        "xy": torch.stack(xy), "clearance": torch.stack(clear), "swept": torch.stack(swept),
+        "reward": torch.stack(reward), "active": torch.stack(active), "outcome": sim.outcome[:, 0].clone(),
+        "clearance0": clear0, "start": sim.start[:, 0], "goal": sim.goal[:, 0],
+    }
+
+
+def episode_metrics(tr: dict, cfg: SimConfig, gamma: float = 0.99) -> dict[str, torch.Tensor]:
+    """Per-episode metrics ``[B]`` from traces (inactive steps are ignored)."""
+    act = tr["active"].double()  # [T, B]
+    steps = act.sum(0)
+    clear = tr["clearance"].double()
+    in_danger = (clear >= 0) & (clear < cfg.danger_dist) & tr["active"]
+    prev = torch.cat([((tr["clearance0"] >= 0) & (tr["clearance0"] < cfg.danger_dist)).unsqueeze(0), in_danger[:-1]])
+    vel = (tr["xy"][1:] - tr["xy"][:-1]).double() / cfg.dt  # [T, B, 2]
+    vel_prev = torch.cat([torch.zeros_like(vel[:1]), vel[:-1]])
+    acc = (vel - vel_prev) / cfg.dt
+    acc_prev = torch.cat([torch.zeros_like(acc[:1]), acc[:-1]])
+    jerk = ((acc - acc_prev) / cfg.dt).norm(dim=-1) * act
+    path = ((tr["xy"][1:] - tr["xy"][:-1]).double().norm(dim=-1) * act).sum(0)
+    success = tr["outcome"] == SUCCESS
+    discount = gamma ** torch.arange(act.shape[0], dtype=torch.float64).unsqueeze(1)
+    straight = (tr["goal"] - tr["start"]).double().norm(dim=-1)
+    return {
+        "outcome": tr["outcome"],
+        "steps": steps,
+        "nav_time": steps * cfg.dt,
+        "danger_steps": in_danger.sum(0),
+        "danger_events": (in_danger & ~prev).sum(0),
+        # capped at the sensing range: an episode with nobody within 5 m reports 5.0
+        "min_clearance": torch.where(tr["active"], tr["swept"].double(), math.inf).amin(0).clamp_max(cfg.sensing_range),
+        "path_length": path,
+        "path_ratio": path / straight,
+        "mean_speed": path / (steps * cfg.dt).clamp_min(1e-9),
+        "jerk": jerk.sum(0) / steps.clamp_min(1),
+        "personal_space": ((clear >= PERSONAL_SPACE) & tr["active"]).sum(0) / steps.clamp_min(1),
+        "return": (tr["reward"].double() * discount).sum(0),
+        "success": success,
+    }
+
+
+def aggregate(m: dict[str, torch.Tensor]) -> dict:
+    n = m["outcome"].numel()
+    ok = m["success"]
+    out = {f"{name}_rate": rate_ci(int((m["outcome"] == code).sum()), n) for code, name in OUTCOMES.items()}
+    out["nav_time_s"] = mean_ci(m["nav_time"][ok])
+    out["path_length_ratio"] = mean_ci(m["path_ratio"][ok])
+    for key in ("danger_steps", "danger_events", "min_clearance", "path_length", "mean_speed", "jerk",
+                "personal_space", "return"):
+        out[{"danger_steps": "dangers_per_episode", "personal_space": "personal_space_compliance",
+             "return": "discounted_return"}.get(key, key)] = mean_ci(m[key].double())
+    return out
+
+
+def episode_records(scene: str, episodes: list[dict], tr: dict, m: dict, cfg: SimConfig) -> list[dict]:
+    """Rows of ``episodes.jsonl`` in SPEC section 6's format."""
+    rows = []
+    for b, e in enumerate(episodes):
+        n = int(m["steps"][b])
+        ok = bool(m["success"][b])
+        rows.append({
+            "protocol": PROTOCOL_VERSION, "scene": scene, "episode": e["episode"],
+            "start_time_s": e["start_time_s"], "dt": cfg.dt, "start": e["start"], "goal": e["goal"],
+            "robot_xy": [[round(x, 5) for x in p] for p in tr["xy"][: n + 1, b].tolist()],
+            "outcome": OUTCOMES[int(m["outcome"][b])],
+            "nav_time_s": float(m["nav_time"][b]) if ok else None,
+            "danger_steps": int(m["danger_steps"][b]),
+            "min_clearance": float(m["min_clearance"][b]),
+        })
+    return rows
+
+
+def sim_config_for(spec: ProtocolSpec, **overrides) -> SimConfig:
+    """The simulator configuration the protocol fixes (dt, time limit, time base, radius)."""
+    return SimConfig(**{**overrides, "dt": spec.dt, "time_limit": spec.time_limit, "time_base": spec.time_base,
+                        "start_radius": spec.start_radius})
+
+
+def evaluate(policy: Policy, scenes=PAPER_SCENES, episodes: int | None = None, out_dir: Path | None = None,
+             save_episodes: bool = False, sim_overrides: dict | None = None, meta: dict | None = None,
+             recorder_factory=None) -> dict:
+    """Evaluate ``policy`` on the saved protocol episode lists; optionally write results files."""
+    scenes = [check_scene(s) for s in scenes]
+    results = {"protocol": PROTOCOL_VERSION, "policy": policy.name, "meta": meta or {}, "scenes": {}}
+    rows = []
+    for scene in scenes:
+        saved = load_episodes(scene)
+        spec = ProtocolSpec(**saved["spec"])
+        cfg = sim_config_for(spec, **(sim_overrides or {}))
+        eps = select_episodes(saved, episodes)
+        recorder = recorder_factory(scene) if recorder_factory else None
+        tr = rollout(policy, scene, eps, cfg, recorder)
+        m = episode_metrics(tr, cfg)
+        results["scenes"][scene] = aggregate(m)
+        if save_episodes:
+            rows += episode_records(scene, eps, tr, m, cfg)
+        results["sim_config"] = asdict(cfg)
+    paper = [s for s in PAPER_SCENES if s in results["scenes"]]
+    if paper:
+        results["average_paper_scenes"] = {
+            k: sum(results["scenes"][s][k]["mean"] or 0.0 for s in paper) / len(paper)
+            for k in ("success_rate", "collision_rate", "timeout_rate", "nav_time_s", "dangers_per_episode")
+        }
+    if out_dir is not None:
+        out_dir = Path(out_dir)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "results.json").write_text(json.dumps(results, indent=1) + "\n")
+        if save_episodes:
+            with open(out_dir / "episodes.jsonl", "w") as f:
+                for r in rows:
+                    f.write(json.dumps(r) + "\n")
+    return results
+
+
+def format_table(results: dict) -> str:
+    """A plain-text table: one row per scene."""
+    cols = [("success_rate", "success"), ("collision_rate", "collision"), ("timeout_rate", "timeout"),
+            ("nav_time_s", "nav time s"), ("dangers_per_episode", "dangers/ep"), ("min_clearance", "min clear m")]
+    head = f"{'scene':<13}" + "".join(f"{name:>22}" for _, name in cols)
+    lines = [f"policy: {results['policy']}  protocol: {results['protocol']}", head]
+    for scene, r in results["scenes"].items():
+        cells = []
+        for key, _ in cols:
+            v = r[key]
+            cells.append("n/a" if v["mean"] is None else f"{v['mean']:.3f} [{v['ci95'][0]:.3f},{v['ci95'][1]:.3f}]")
+        lines.append(f"{scene:<13}" + "".join(f"{c:>22}" for c in cells))
+    if "average_paper_scenes" in results:
+        a = results["average_paper_scenes"]
+        lines.append(f"{'avg (paper)':<13}" + "".join(f"{a.get(k, float('nan')):>22.3f}" for k, _ in cols if k in a))
+    return "\n".join(lines)
