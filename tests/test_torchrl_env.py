@@ -1,0 +1,62 @@
+"""TorchRL EnvBase: spec checks, partial resets and agreement with the core."""
+
+import math
+
+import pytest
+import torch
+from torchrl.envs.utils import check_env_specs
+
+from crowdbench.envs.core import CrowdSim
+from crowdbench.envs.torchrl_env import CrowdEnv
+
+
+@pytest.mark.parametrize("batch", [1, 4])
+def test_check_env_specs(batch):
+    check_env_specs(CrowdEnv("students001", batch, seed=0))
+
+
+def test_rollout_autoresets_done_envs():
+    env = CrowdEnv("hotel", 6, seed=1)
+    td = env.rollout(150, break_when_any_done=False)  # [B, T]
+    done = td["next", "done"].squeeze(-1)
+    assert done.any(1).all()  # every env finished an episode within 150 steps (time limit 100)
+    r = td["next", "agents", "reward"][..., 0, 0]
+    assert (r[done] != 0).all()  # the final step carries r_reach or r_fail
+    b, k = done.nonzero()[0].tolist()
+    # the step after a done starts a new episode: robot at the start, zero velocity, goal 8 m away
+    robot = td["agents", "observation", "robot"][b, k + 1, 0]
+    assert robot[2:4].abs().sum() == 0 and robot[4:6].norm().item() == pytest.approx(8.0, abs=1e-4)
+
+
+def test_same_seed_same_rollout():
+    a = CrowdEnv("zara2", 3, seed=5)
+    b = CrowdEnv("zara2", 3, seed=5)
+    torch.manual_seed(0)
+    ra = a.rollout(40, break_when_any_done=False)
+    torch.manual_seed(0)
+    rb = b.rollout(40, break_when_any_done=False)
+    assert torch.equal(ra["next", "agents", "observation", "humans"], rb["next", "agents", "observation", "humans"])
+    assert torch.equal(ra["next", "agents", "reward"], rb["next", "agents", "reward"])
+
+
+def test_fixed_episode_list_and_core_agreement():
+    t0, angle = torch.tensor([30, 60]), torch.tensor([0.3, 2.0])
+    env = CrowdEnv("students003", 2, episodes=(t0, angle))
+    td = env.reset()
+    sim = CrowdSim(env.sim.scene, 2)
+    sim.reset(torch.ones(2, dtype=torch.bool), t0, angle)
+    assert torch.equal(td["agents", "observation", "humans"], sim.observe()["humans"])
+    action = torch.tensor([[[0.6, 0.1]], [[0.2, -0.4]]])
+    td["agents", "action"] = action
+    out = env.step(td)["next"]
+    info = sim.step(action)
+    assert torch.equal(out["agents", "reward"][..., 0], info.reward)
+    assert torch.equal(out["agents", "observation", "robot"], sim.observe()["robot"])
+
+
+def test_nan_action_raises():
+    env = CrowdEnv("eth", 1)
+    td = env.reset()
+    td["agents", "action"] = torch.full((1, 1, 2), math.nan)
+    with pytest.raises(ValueError, match="NaN"):
+        env.step(td)
