@@ -70,14 +70,17 @@ def segment_min_distance(a0: torch.Tensor, a1: torch.Tensor) -> torch.Tensor:
 
 
 def to_local(vec: torch.Tensor, heading: torch.Tensor) -> torch.Tensor:
-    """Rotate world vectors ``[..., 2]`` into a frame whose x-axis is ``heading`` (unit ``[..., 2]``)."""
-    c, s = heading[..., 0], heading[..., 1]
+    """Rotate ``[..., K, 2]`` world vectors into the frame whose x-axis is ``heading`` ``[..., 2]``.
+
+    Elementwise rather than ``vec @ R``: batched 2x2 matmuls cost ~20x more per call on CPU.
+    """
+    c, s = heading[..., 0:1], heading[..., 1:2]
     x, y = vec[..., 0], vec[..., 1]
-    return torch.stack((c * x + s * y, -s * x + c * y), -1)
+    return torch.stack((c * x + s * y, c * y - s * x), -1)
 
 
 def to_world(vec: torch.Tensor, heading: torch.Tensor) -> torch.Tensor:
-    c, s = heading[..., 0], heading[..., 1]
+    c, s = heading[..., 0:1], heading[..., 1:2]
     x, y = vec[..., 0], vec[..., 1]
     return torch.stack((c * x - s * y, s * x + c * y), -1)
 
@@ -176,7 +179,7 @@ class CrowdSim:
             raise ValueError("action contains NaN")
         cfg = self.cfg
         frame = frame or cfg.frame
-        act = to_world(action, self.heading) if frame == "rotate" else action
+        act = to_world(action.unsqueeze(-2), self.heading).squeeze(-2) if frame == "rotate" else action
         vel = self.clip_action(act)
         active = self.outcome == RUNNING  # [B, A]
         vel = vel * active.unsqueeze(-1)
@@ -231,17 +234,17 @@ class CrowdSim:
         """
         frame = frame or self.cfg.frame
         hpos, hvel, hvalid = self.humans()
+        B, A, M = self.B, self.A, self.M
         rel = hpos.unsqueeze(1) - self.pos.unsqueeze(2)  # [B, A, M, 2]
-        seen = hvalid.unsqueeze(1) & (rel.norm(dim=-1) <= self.cfg.sensing_range)
-        hv = hvel.unsqueeze(1).expand_as(rel)
-        goal, vel, pos = self.goal - self.pos, self.vel, self.pos
-        if frame == "rotate":
-            hd = self.heading.unsqueeze(2)
-            rel, hv = to_local(rel, hd), to_local(hv, hd)
-            goal, vel = to_local(goal, self.heading), to_local(vel, self.heading)
+        seen = hvalid.unsqueeze(1) & ((rel * rel).sum(-1) <= self.cfg.sensing_range**2)
         if frame == "world":
-            rel, goal = rel + self.pos.unsqueeze(2), self.goal
-        else:
-            pos = torch.zeros_like(pos)
-        humans = torch.cat((rel, hv), -1) * seen.unsqueeze(-1)
-        return {"robot": torch.cat((pos, vel, goal), -1), "humans": humans, "humans_mask": seen}
+            rel = hpos.unsqueeze(1).expand(B, A, M, 2)
+        # rows: every human's (position, velocity) pair plus the robot's (velocity, goal)
+        pairs = torch.cat((torch.stack((rel, hvel.unsqueeze(1).expand(B, A, M, 2)), -2).reshape(B, A, 2 * M, 2),
+                           torch.stack((self.vel, self.goal - self.pos if frame != "world" else self.goal), -2)), -2)
+        if frame == "rotate":
+            pairs = to_local(pairs, self.heading)
+        humans = pairs[:, :, : 2 * M].reshape(B, A, M, 4) * seen.unsqueeze(-1)
+        pos = self.pos if frame == "world" else torch.zeros_like(self.pos)
+        robot = torch.cat((pos, pairs[:, :, 2 * M :].reshape(B, A, 4)), -1)
+        return {"robot": robot, "humans": humans, "humans_mask": seen}
