@@ -30,8 +30,14 @@ def test_saved_lists_match_generator_and_cover_protocol(scene):
     assert saved["protocol"] == "v1" and len(eps) >= 250
     s = load_scene(scene)
     last = s.n_steps - 1 - 100
-    t0 = [e["t0"] for e in eps]
-    assert t0[0] == 0 and t0[-1] == last and t0 == sorted(t0)  # evenly spread, all fit 100 steps
+    planned = [round(i * last / (len(eps) - 1)) for i in range(len(eps))]
+    shift = [abs(e["t0"] - p) for e, p in zip(eps, planned, strict=True)]
+    assert all(0 <= e["t0"] <= last for e in eps)  # every episode fits its 100 steps
+    # evenly spread, nudged to a free start: at most 25% moved, by at most 20 s (students003, the densest)
+    assert sum(d > 0 for d in shift) <= len(eps) // 4 and max(shift) <= 80
+    for e in eps:  # the start point is free at t0 (>= 0.3 m clearance from every human present)
+        h = s.pos[e["t0"]][s.valid[e["t0"]]].double()
+        assert ((h - torch.tensor(e["start"], dtype=torch.float64)).norm(dim=-1) - 0.3 >= 0.3 - 1e-5).all()
     sectors = torch.tensor([int(e["angle"] / (2 * math.pi) * 8) for e in eps]).bincount(minlength=8)
     assert sectors.min() >= 28  # golden-ratio angles cover the circle (250 / 8 = 31.25)
     e = eps[7]
@@ -41,10 +47,9 @@ def test_saved_lists_match_generator_and_cover_protocol(scene):
     assert math.dist(e["start"], e["goal"]) == pytest.approx(8.0, abs=1e-5)
 
 
-def test_seed_changes_angles_only():
+def test_seed_changes_angles_same_seed_same_list():
     a = generate_episodes("hotel", ProtocolSpec(seed=1))
     b = generate_episodes("hotel", ProtocolSpec(seed=2))
-    assert [e["t0"] for e in a["episodes"]] == [e["t0"] for e in b["episodes"]]
     assert a["episodes"][0]["angle"] != b["episodes"][0]["angle"]
     assert generate_episodes("hotel", ProtocolSpec(seed=1)) == a
 

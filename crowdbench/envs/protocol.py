@@ -38,11 +38,32 @@ class ProtocolSpec:
     time_limit: int = 100
     time_base: str = "true"
     start_radius: float = 4.0
+    # the start point must be free at t0: every human >= this clearance from the robot's disc
+    start_clearance: float = 0.3
 
 
 def last_start(scene_name: str, spec: ProtocolSpec) -> int:
     scene = load_scene(scene_name, spec.dt, spec.time_base)
     return scene.n_steps - 1 - spec.time_limit
+
+
+def free_start(scene, t: int, start: torch.Tensor, spec: ProtocolSpec, radius_sum: float = 0.3) -> bool:
+    pos, valid = scene.pos[t].double(), scene.valid[t]
+    gap = (pos - start).norm(dim=-1) - radius_sum
+    return bool((gap[valid] >= spec.start_clearance).all())
+
+
+def nearest_free_start(scene, t0: int, hi: int, start: torch.Tensor, spec: ProtocolSpec) -> int:
+    """``t0`` itself if the start point is free then, else the nearest free grid index in ``[0, hi]``.
+
+    An episode that starts inside (or touching) a pedestrian is a collision no policy can
+    avoid; searching outward keeps the start times evenly spread to within a few steps.
+    """
+    for d in range(hi + 1):
+        for t in (t0 + d, t0 - d):
+            if 0 <= t <= hi and free_start(scene, t, start, spec):
+                return t
+    raise ValueError(f"scene {scene.name}: the start point is never free")
 
 
 def generate_episodes(scene_name: str, spec: ProtocolSpec = ProtocolSpec()) -> dict:
@@ -55,11 +76,12 @@ def generate_episodes(scene_name: str, spec: ProtocolSpec = ProtocolSpec()) -> d
     offset = torch.rand((), generator=g, dtype=torch.float64).item()
     episodes = []
     for i in range(n):
-        t0 = round(i * hi / max(n - 1, 1))
         angle = 2 * math.pi * ((offset + i * GOLDEN) % 1.0)
         u = (math.cos(angle), math.sin(angle))
         c = scene.centre.double().tolist()
         r = spec.start_radius
+        start = torch.tensor([c[0] + r * u[0], c[1] + r * u[1]], dtype=torch.float64)
+        t0 = nearest_free_start(scene, round(i * hi / max(n - 1, 1)), hi, start, spec)
         episodes.append(
             {
                 "episode": i,
