@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import sys
 import time
-from dataclasses import fields
 from pathlib import Path
 
 from crowdbench.envs.core import SimConfig
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
-COMMANDS = ("eval",)
+COMMANDS = ("eval", "run")
 BASELINES = ("orca", "straight")
 
 
@@ -60,11 +59,6 @@ def _hydra_message(err: Exception, overrides: list[str]) -> str:
     return f"bad override: {text}"
 
 
-def sim_overrides(env_cfg) -> dict:
-    names = {f.name for f in fields(SimConfig)}
-    return {k: (str(v) if k == "time_base" else v) for k, v in env_cfg.items() if k in names}
-
-
 def make_policy(name: str, cfg):
     if name == "straight":
         from crowdbench.baselines.straight import StraightToGoal
@@ -75,22 +69,25 @@ def make_policy(name: str, cfg):
 
         return ORCA(v_max=cfg.env.v_max, dt=cfg.env.dt)
     if name.endswith(".pt") or Path(name).exists():
-        raise UsageError(f"policy {name!r}: checkpoint evaluation arrives with training (issue 3)")
+        from crowdbench.algos.checkpoint import CheckpointError, policy_from_checkpoint
+
+        try:
+            return policy_from_checkpoint(Path(name))
+        except CheckpointError as e:
+            raise UsageError(str(e)) from None
     raise UsageError(f"unknown policy {name!r}; valid: {', '.join(BASELINES)} or a checkpoint path")
 
 
-def output_dir(cfg, command: str) -> Path:
+def output_dir(cfg, command: str, name: str) -> Path:
     if cfg.out:
         return Path(cfg.out)
     stamp = time.strftime("%Y%m%d-%H%M%S")
-    return Path("outputs") / f"{command}-{Path(str(cfg.policy)).stem}-{stamp}"
+    return Path("outputs") / f"{command}-{Path(name).stem}-{stamp}"
 
 
-def cmd_eval(overrides: list[str]) -> int:
+def eval_options(cfg) -> tuple[list[str], int | None]:
     from crowdbench.data.scenes import check_scene
-    from crowdbench.eval import evaluate, format_table
 
-    cfg = compose(overrides)
     scenes = list(cfg.eval.scenes) if not isinstance(cfg.eval.scenes, str) else [cfg.eval.scenes]
     try:
         scenes = [check_scene(s) for s in scenes]
@@ -99,27 +96,64 @@ def cmd_eval(overrides: list[str]) -> int:
     episodes = cfg.eval.episodes
     if episodes is not None and (not isinstance(episodes, int) or episodes < 1):
         raise UsageError(f"eval.episodes must be a positive integer or null, got {episodes!r}")
-    policy = make_policy(str(cfg.policy), cfg)
-    out = output_dir(cfg, "eval")
+    return scenes, episodes
+
+
+def run_eval(policy, cfg, out: Path, overrides: list[str]) -> dict:
+    from crowdbench.eval import evaluate, format_table
+
+    scenes, episodes = eval_options(cfg)
+    sim = SimConfig.fields_of(cfg.env)
+    sim["frame"] = policy.frame
     results = evaluate(policy, scenes, episodes, out_dir=out, save_episodes=bool(cfg.eval.save_episodes),
-                       sim_overrides=sim_overrides(cfg.env), meta={"seed": cfg.seed, "overrides": overrides})
+                       sim_overrides=sim, meta={"seed": cfg.seed, "overrides": overrides})
     print(format_table(results))
     print(f"results written to {out / 'results.json'}")
+    return results
+
+
+def cmd_eval(overrides: list[str]) -> int:
+    cfg = compose(overrides)
+    eval_options(cfg)  # reject bad scenes before loading anything
+    policy = make_policy(str(cfg.policy), cfg)
+    run_eval(policy, cfg, output_dir(cfg, "eval", str(cfg.policy)), overrides)
+    return 0
+
+
+def cmd_run(overrides: list[str]) -> int:
+    """Train on the training scene, checkpoint periodically, then evaluate on the protocol."""
+    from crowdbench.algos.checkpoint import CheckpointError, policy_from_checkpoint
+    from crowdbench.algos.train import train
+
+    cfg = compose(overrides)
+    eval_options(cfg)
+    if cfg.resume and not cfg.out:
+        raise UsageError("resume=true needs out=<run directory> (the run to continue)")
+    out = output_dir(cfg, "run", f"{cfg.algo.name}-{cfg.encoder.name}")
+    try:
+        stats = train(cfg, out, resume=bool(cfg.resume))
+        print(f"trained {stats['frames']} frames, {stats['updates']} updates; checkpoint {out / 'checkpoint.pt'}")
+        policy = policy_from_checkpoint(out / "checkpoint.pt")
+    except CheckpointError as e:
+        raise UsageError(str(e)) from None
+    run_eval(policy, cfg, out, overrides)
     return 0
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help"):
-        print("usage: crowdbench {eval} [key=value ...]\n"
-              "  crowdbench eval policy=orca|straight [eval.scenes=[eth,hotel]] [eval.episodes=N] "
-              "[eval.save_episodes=true] [out=DIR]")
+        print("usage: crowdbench {eval,run} [key=value ...]\n"
+              "  crowdbench eval policy=orca|straight|<checkpoint.pt> [eval.scenes=[eth,hotel]] [eval.episodes=N] "
+              "[eval.save_episodes=true] [out=DIR]\n"
+              "  crowdbench run algo=td3|ddpg|sac encoder=gatedgcn|gcn|mlp [train.total_frames=N] [seed=S] "
+              "[out=DIR] [resume=true]")
         return 0
     command, overrides = argv[0], argv[1:]
     try:
         if command not in COMMANDS:
             raise UsageError(f"unknown command {command!r}; valid commands: {', '.join(COMMANDS)}")
-        return {"eval": cmd_eval}[command](overrides)
+        return {"eval": cmd_eval, "run": cmd_run}[command](overrides)
     except UsageError as e:
         print(f"crowdbench: error: {e}", file=sys.stderr)
         return 2

@@ -189,8 +189,7 @@ def evaluate(policy: Policy, scenes=PAPER_SCENES, episodes: int | None = None, o
         (out_dir / "results.json").write_text(json.dumps(results, indent=1) + "\n")
         if save_episodes:
             with open(out_dir / "episodes.jsonl", "w") as f:
-                for r in rows:
-                    f.write(json.dumps(r) + "\n")
+                f.writelines(json.dumps(r) + "\n" for r in rows)
     return results
 
 

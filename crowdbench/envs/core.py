@@ -13,7 +13,7 @@ Geometry (SPEC section 3):
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import torch
 
@@ -39,6 +39,13 @@ class SimConfig:
     frame: str = "rotate"  # observation frame: rotate | translate | world
     start_radius: float = 4.0
     time_base: str = "true"  # ETH row period: true (2/3 s) or 0.4
+
+    @classmethod
+    def fields_of(cls, mapping) -> dict:
+        """The entries of ``mapping`` (e.g. the ``env`` config) that are simulator settings."""
+        names = {f.name for f in fields(cls)}
+        # YAML reads "true" as a bool: the time base is a string option
+        return {k: (str(v).lower() if k == "time_base" else v) for k, v in dict(mapping).items() if k in names}
 
     def __post_init__(self):
         if self.frame not in ("rotate", "translate", "world"):

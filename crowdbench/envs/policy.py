@@ -35,7 +35,7 @@ class Policy(ABC):
     #: short name used in results files
     name: str = "policy"
 
-    def reset(self, mask: torch.Tensor) -> None:  # noqa: B027 - stateless policies need nothing
+    def reset(self, mask: torch.Tensor) -> None:
         """Called with a ``[B]`` mask of environments that start a new episode."""
 
     @abstractmethod

@@ -1,0 +1,195 @@
+"""Off-policy training (TD3 / DDPG / SAC) on the batched replay env, readable top to bottom.
+
+Algorithm 1 of the paper with TorchRL parts: a ``Collector`` steps ``B`` environments at
+once (random actions during warm-up, then ``pi(G) + N(0, sigma)``), transitions go to a
+prioritised (or uniform) replay buffer, and every collected batch is followed by
+``utd * frames`` gradient updates: critics every update, actor and target networks every
+``policy_delay`` updates (TD3) or every update (DDPG, SAC).
+"""
+
+from __future__ import annotations
+
+import csv
+import time
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+from torchrl.collectors import Collector
+from torchrl.data import LazyTensorStorage, TensorDictPrioritizedReplayBuffer, TensorDictReplayBuffer
+from torchrl.envs import RewardSum, TransformedEnv
+from torchrl.objectives import SoftUpdate
+from torchrl.record.loggers.csv import CSVLogger
+from tqdm import tqdm
+
+from crowdbench.algos.builders import (
+    actor_parameters,
+    build_actor,
+    build_critic,
+    build_loss,
+    critic_parameters,
+    exploration_policy,
+)
+from crowdbench.algos.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from crowdbench.envs.core import COLLISION, SUCCESS, SimConfig
+from crowdbench.envs.policy import GROUP
+from crowdbench.envs.torchrl_env import CrowdEnv
+
+EPISODE_RETURN = (GROUP, "episode_reward")
+# the keys the losses read; everything else the env emits stays out of the replay buffer
+KEEP = [(GROUP, "observation"), (GROUP, "action"), ("next", GROUP, "observation"), ("next", GROUP, "reward"),
+        ("next", GROUP, "done"), ("next", GROUP, "terminated")]
+MODEL_KEYS = ("algo", "encoder", "env")
+
+
+def make_buffer(a: DictConfig):
+    storage = LazyTensorStorage(a.buffer_size)
+    if a.replay == "prioritized":
+        rb = TensorDictPrioritizedReplayBuffer(alpha=a.per_alpha, beta=a.per_beta, storage=storage,
+                                               batch_size=a.batch_size, priority_key="td_error")
+    elif a.replay == "uniform":
+        rb = TensorDictReplayBuffer(storage=storage, batch_size=a.batch_size)
+    else:
+        raise ValueError(f"unknown replay {a.replay!r}; valid: prioritized, uniform")
+    return rb
+
+
+def per_transition(err: torch.Tensor, n: int) -> torch.Tensor:
+    """One priority per sampled transition: the largest error over twin critics and agents."""
+    if err.shape[0] != n:  # TD3 stacks its critics first: [2, n, ...]
+        err = err.amax(0)
+    return err.reshape(n, -1).amax(-1)
+
+
+def truncate_log(log_dir: Path, frames: int) -> None:
+    """After a resume, drop rows logged past the checkpoint: they are about to be logged again."""
+    for f in (log_dir / "scalars").glob("*.csv"):
+        rows = [r for r in csv.reader(f.read_text().splitlines()) if r and int(float(r[0])) <= frames]
+        f.write_text("".join(f"{r[0]},{r[1]}\n" for r in rows))
+
+
+def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool = True) -> dict:
+    """Train per ``cfg`` into ``out_dir`` (``checkpoint.pt``, ``logs/``); return final stats."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    ckpt_path = out_dir / "checkpoint.pt"
+    state = None
+    if resume:
+        state = load_checkpoint(ckpt_path)
+        saved = OmegaConf.create(state["config"])
+        for key in MODEL_KEYS:  # the model and task must be the ones that were trained
+            if OmegaConf.to_container(saved[key]) != OmegaConf.to_container(cfg[key]):
+                raise CheckpointError(f"resume: config '{key}' differs from the checkpoint's in {ckpt_path}")
+    a, t = cfg.algo, cfg.train
+    torch.manual_seed(cfg.seed)
+    algo = a.name
+    env = CrowdEnv(cfg.env.scene, cfg.env.batch, SimConfig(**SimConfig.fields_of(cfg.env)), seed=cfg.seed)
+    n_agents, v_max = env.n_agents, cfg.env.v_max
+    actor = build_actor(algo, OmegaConf.to_container(cfg.encoder), v_max)
+    critic = build_critic(OmegaConf.to_container(cfg.encoder))
+    loss = build_loss(algo, actor, critic, n_agents, v_max, a)
+    target_updater = SoftUpdate(loss, tau=a.tau)
+    opt_actor = torch.optim.Adam(actor_parameters(loss), lr=a.lr_actor)
+    opt_critic = torch.optim.Adam(critic_parameters(loss), lr=a.lr_critic)
+    opt_alpha = torch.optim.Adam([loss.log_alpha], lr=a.lr_alpha) if algo == "sac" else None
+    rb = make_buffer(a)
+    # the losses' own critic / actor terms, called separately so the actor is only evaluated when updated
+    critic_loss = {"td3": "value_loss", "ddpg": "loss_value", "sac": "qvalue_v2_loss"}[algo]
+    critic_loss = getattr(loss, critic_loss)
+    actor_loss = loss.loss_actor if algo == "ddpg" else loss.actor_loss
+    frames = updates = 0
+    if state is not None:
+        loss.load_state_dict(state["loss"])
+        opt_actor.load_state_dict(state["opt_actor"])
+        opt_critic.load_state_dict(state["opt_critic"])
+        if opt_alpha is not None:
+            opt_alpha.load_state_dict(state["opt_alpha"])
+        env.sampler.load_state_dict(state["sampler"])
+        torch.set_rng_state(state["torch_rng"])
+        frames, updates = int(state["frames"]), int(state["updates"])
+        truncate_log(out_dir / "logs", frames)
+
+    logger = CSVLogger(exp_name="logs", log_dir=str(out_dir))
+    fpb = t.frames_per_batch
+    remaining = t.total_frames - frames
+    if remaining <= 0:
+        return {"frames": frames, "updates": updates}
+    # the replay buffer is not checkpointed (hundreds of MB): a resumed run refills it with warm-up frames
+    collector = Collector(
+        TransformedEnv(env, RewardSum(in_keys=[(GROUP, "reward")], out_keys=[EPISODE_RETURN])),
+        exploration_policy(algo, actor, n_agents, v_max, a.exploration_sigma),
+        frames_per_batch=fpb, total_frames=remaining, init_random_frames=a.warmup if state is None else 0,
+    )
+
+    def save():
+        save_checkpoint(ckpt_path, {
+            "config": OmegaConf.to_container(cfg, resolve=True), "actor": actor.state_dict(),
+            "loss": loss.state_dict(), "opt_actor": opt_actor.state_dict(), "opt_critic": opt_critic.state_dict(),
+            **({"opt_alpha": opt_alpha.state_dict()} if opt_alpha is not None else {}),
+            "sampler": env.sampler.state_dict(), "torch_rng": torch.get_rng_state(),
+            "frames": frames, "updates": updates,
+        })
+
+    def update(sample, n: int) -> dict[str, float]:
+        """One gradient step: critics always; actor, temperature and targets every policy_delay."""
+        q_loss, meta = critic_loss(sample)
+        opt_critic.zero_grad()
+        q_loss.backward()
+        opt_critic.step()
+        sample.set("td_error", per_transition(meta["td_error"].detach(), sample.batch_size[0]))
+        out = {"loss_critic": q_loss.item()}
+        if n % a.policy_delay == 0:
+            pi_loss, pi_meta = actor_loss(sample)
+            opt_actor.zero_grad()
+            pi_loss.backward()
+            opt_actor.step()
+            if opt_alpha is not None:
+                alpha_loss = loss.alpha_loss(pi_meta["log_prob"]).mean()
+                opt_alpha.zero_grad()
+                alpha_loss.backward()
+                opt_alpha.step()
+                out["alpha"] = loss.log_alpha.exp().item()
+            target_updater.step()
+            out["loss_actor"] = pi_loss.item()
+        return out
+
+    bar = tqdm(total=t.total_frames, initial=frames, disable=not progress, unit="frame", dynamic_ncols=True)
+    last_ckpt, start = frames, time.time()
+    window: list[tuple[int, float]] = []  # (outcome, return) of recently finished episodes
+    stats: dict = {}
+    for batch in collector:
+        frames += batch.numel()
+        done = batch["next", "done"].squeeze(-1)
+        outcome = batch["next", GROUP, "info", "outcome"][..., 0][done]
+        ret = batch["next", EPISODE_RETURN][..., 0, 0][done]
+        window = (window + list(zip(outcome.tolist(), ret.tolist(), strict=True)))[-t.stats_window:]
+        rb.extend(batch.select(*KEEP).reshape(-1))
+
+        logs: dict[str, float] = {}
+        if len(rb) >= a.warmup:
+            for _ in range(max(1, int(t.utd * batch.numel()))):
+                logs.update(update(sample := rb.sample(), updates))
+                updates += 1
+                if a.replay == "prioritized":
+                    rb.update_tensordict_priority(sample)
+
+        if window:
+            stats = {
+                "success_rate": sum(o == SUCCESS for o, _ in window) / len(window),
+                "collision_rate": sum(o == COLLISION for o, _ in window) / len(window),
+                "episode_return": sum(r for _, r in window) / len(window),
+            }
+            logs.update(stats)
+        logs["updates"] = updates
+        logs["wall_time_s"] = time.time() - start
+        for k, v in logs.items():
+            logger.log_scalar(k, v, step=frames)
+        bar.update(batch.numel())
+        bar.set_postfix({k: f"{v:.2f}" for k, v in stats.items()} | {"upd": updates})
+        if frames - last_ckpt >= t.checkpoint_every:
+            save()
+            last_ckpt = frames
+    save()
+    bar.close()
+    collector.shutdown()
+    return {"frames": frames, "updates": updates, **stats}
