@@ -81,14 +81,12 @@ def build_loss(algo: str, actor, critic, n_agents: int, v_max: float, a: dict):
     else:
         loss = SACLoss(actor, critic, num_qvalue_nets=2, loss_function=a["loss_function"], action_spec=spec,
                        alpha_init=a["alpha_init"], target_entropy="auto", use_prioritized_weights=False)
-    keys = {"action": ACTION, "reward": (GROUP, "reward"), "done": (GROUP, "done"), "terminated": (GROUP, "terminated")}
+    keys = {"reward": (GROUP, "reward"), "done": (GROUP, "done"), "terminated": (GROUP, "terminated"),
+            "state_action_value": STATE_ACTION_VALUE}
+    if algo != "ddpg":  # DDPGLoss takes the action key from the actor's out_keys
+        keys["action"] = ACTION
     if algo == "sac":
         keys["log_prob"] = LOG_PROB
-        keys["state_action_value"] = STATE_ACTION_VALUE
-    elif algo == "td3":
-        keys["state_action_value"] = STATE_ACTION_VALUE
-    else:
-        keys["state_action_value"] = STATE_ACTION_VALUE
     loss.set_keys(**keys)
     loss.make_value_estimator(ValueEstimators.TD0, gamma=a["gamma"])
     return loss

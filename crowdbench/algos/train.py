@@ -119,6 +119,7 @@ def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool =
         TransformedEnv(env, RewardSum(in_keys=[(GROUP, "reward")], out_keys=[EPISODE_RETURN])),
         exploration_policy(algo, actor, n_agents, v_max, a.exploration_sigma),
         frames_per_batch=fpb, total_frames=remaining, init_random_frames=a.warmup if state is None else 0,
+        auto_register_policy_transforms=False,
     )
 
     def save():
