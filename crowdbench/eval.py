@@ -209,3 +209,22 @@ def format_table(results: dict) -> str:
         a = results["average_paper_scenes"]
         lines.append(f"{'avg (paper)':<13}" + "".join(f"{a.get(k, float('nan')):>22.3f}" for k, _ in cols if k in a))
     return "\n".join(lines)
+
+
+def markdown_table(runs: list[dict], metric: str = "success_rate", digits: int = 3) -> str:
+    """Markdown table of one metric: a row per results dict, a column per scene (+ paper-scene average)."""
+    scenes = list(dict.fromkeys(s for r in runs for s in r["scenes"]))
+    paper = [s for s in PAPER_SCENES if s in scenes]
+    head = ["policy", *scenes] + (["avg (paper scenes)"] if paper else [])
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in runs:
+        cells = [r["policy"]]
+        for s in scenes:
+            v = r["scenes"].get(s, {}).get(metric)
+            cells.append("—" if not v or v["mean"] is None else
+                         f"{v['mean']:.{digits}f} [{v['ci95'][0]:.{digits}f}, {v['ci95'][1]:.{digits}f}]")
+        if paper:
+            vals = [r["scenes"][s][metric]["mean"] for s in paper if s in r["scenes"]]
+            cells.append(f"{sum(vals) / len(vals):.{digits}f}" if len(vals) == len(paper) and None not in vals else "—")
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
