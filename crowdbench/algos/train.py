@@ -34,6 +34,7 @@ from crowdbench.algos.checkpoint import CheckpointError, load_checkpoint, save_c
 from crowdbench.envs.core import COLLISION, SUCCESS, SimConfig
 from crowdbench.envs.policy import GROUP
 from crowdbench.envs.torchrl_env import CrowdEnv
+from crowdbench.models.perf import tune_allocator
 
 EPISODE_RETURN = (GROUP, "episode_reward")
 # the keys the losses read; everything else the env emits stays out of the replay buffer
@@ -81,6 +82,7 @@ def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool =
             if OmegaConf.to_container(saved[key]) != OmegaConf.to_container(cfg[key]):
                 raise CheckpointError(f"resume: config '{key}' differs from the checkpoint's in {ckpt_path}")
     a, t = cfg.algo, cfg.train
+    tune_allocator()
     torch.manual_seed(cfg.seed)
     algo = a.name
     env = CrowdEnv(cfg.env.scene, cfg.env.batch, SimConfig(**SimConfig.fields_of(cfg.env)), seed=cfg.seed)
@@ -89,8 +91,9 @@ def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool =
     critic = build_critic(OmegaConf.to_container(cfg.encoder))
     loss = build_loss(algo, actor, critic, n_agents, v_max, a)
     target_updater = SoftUpdate(loss, tau=a.tau)
-    opt_actor = torch.optim.Adam(actor_parameters(loss), lr=a.lr_actor)
-    opt_critic = torch.optim.Adam(critic_parameters(loss), lr=a.lr_critic)
+    # fused Adam: one kernel for all parameters (~5x cheaper steps for many small tensors on CPU)
+    opt_actor = torch.optim.Adam(actor_parameters(loss), lr=a.lr_actor, fused=True)
+    opt_critic = torch.optim.Adam(critic_parameters(loss), lr=a.lr_critic, fused=True)
     opt_alpha = torch.optim.Adam([loss.log_alpha], lr=a.lr_alpha) if algo == "sac" else None
     rb = make_buffer(a)
     # the losses' own critic / actor terms, called separately so the actor is only evaluated when updated

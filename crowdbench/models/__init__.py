@@ -1,0 +1,30 @@
+"""Encoders (observation -> node states) and actor / critic heads.
+
+Register a new encoder with ONE line in :data:`ENCODERS`; the heads and algorithms use
+only the common interface described in :mod:`crowdbench.models.base`.
+"""
+
+from __future__ import annotations
+
+from torch import nn
+
+from crowdbench.models.gatedgcn import GatedGCNEncoder
+from crowdbench.models.gcn import GCNEncoder
+from crowdbench.models.mlp import MLPEncoder
+
+ENCODERS: dict[str, type[nn.Module]] = {
+    "gatedgcn": GatedGCNEncoder,
+    "gcn": GCNEncoder,
+    "mlp": MLPEncoder,
+}
+
+
+def make_encoder(name: str, **cfg) -> nn.Module:
+    """Instantiate the encoder registered as ``name`` with the config ``cfg``
+    (e.g. ``make_encoder(**yaml.safe_load(open("configs/encoder/gatedgcn.yaml")))``)."""
+    if name not in ENCODERS:
+        raise ValueError(f"unknown encoder {name!r}; valid encoders: {', '.join(sorted(ENCODERS))}")
+    return ENCODERS[name](**cfg)
+
+
+__all__ = ["ENCODERS", "GCNEncoder", "GatedGCNEncoder", "MLPEncoder", "make_encoder"]

@@ -1,0 +1,97 @@
+"""Training end to end: every algo x encoder, checkpoints, resume after a kill, bad input."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+import torch
+
+from crowdbench.algos.checkpoint import CheckpointError, load_checkpoint, policy_from_checkpoint
+from crowdbench.algos.train import train
+from crowdbench.cli import compose, main
+from crowdbench.eval import evaluate
+
+TINY = ["env.batch=8", "train.frames_per_batch=64", "algo.warmup=128", "algo.batch_size=16", "train.utd=0.125",
+        "train.checkpoint_every=128"]
+SMALL_ENCODER = {"gatedgcn": ["encoder.dim=16"], "gcn": ["encoder.dim=16"], "mlp": ["encoder.dim=16",
+                                                                                    "encoder.hidden=[32]"]}
+
+
+def read_log(run, name):
+    path = run / "logs" / "scalars" / f"{name}.csv"
+    return [(int(float(a)), float(b)) for a, b in (line.split(",") for line in path.read_text().splitlines())]
+
+
+@pytest.mark.parametrize("algo", ["td3", "ddpg", "sac"])
+@pytest.mark.parametrize("encoder", ["gatedgcn", "gcn", "mlp"])
+def test_each_algo_encoder_trains_and_checkpoints(algo, encoder, tmp_path):
+    cfg = compose([f"algo={algo}", f"encoder={encoder}", "train.total_frames=320", *TINY, *SMALL_ENCODER[encoder]])
+    stats = train(cfg, tmp_path, progress=False)
+    assert stats["frames"] == 320 and stats["updates"] > 0
+    state = load_checkpoint(tmp_path / "checkpoint.pt")  # weights_only=True inside
+    assert state["frames"] == 320 and state["config"]["algo"]["name"] == algo
+    losses = read_log(tmp_path, "loss_critic")
+    assert losses and all(torch.isfinite(torch.tensor(v)) for _, v in losses)
+    policy = policy_from_checkpoint(tmp_path / "checkpoint.pt")
+    res = evaluate(policy, ["hotel"], episodes=3)
+    assert res["scenes"]["hotel"]["success_rate"]["n"] == 3
+
+
+def test_resume_continues_counter_and_log(tmp_path):
+    base = ["algo=td3", "encoder=gcn", *TINY, *SMALL_ENCODER["gcn"]]
+    train(compose([*base, "train.total_frames=256"]), tmp_path, progress=False)
+    first = read_log(tmp_path, "updates")
+    stats = train(compose([*base, "train.total_frames=512"]), tmp_path, resume=True, progress=False)
+    assert stats["frames"] == 512
+    log = read_log(tmp_path, "updates")
+    assert log[: len(first)] == first  # nothing logged before is lost
+    steps = [s for s, _ in log]
+    assert steps == sorted(set(steps)) and steps[-1] == 512  # the counter continues, no duplicates
+    assert log[-1][1] > first[-1][1]  # updates keep counting from the checkpoint
+
+
+def test_resume_after_kill(tmp_path):
+    """Kill a real `crowdbench run` after its first checkpoint, resume it, and check the log and counter."""
+    args = [sys.executable, "-m", "crowdbench.cli", "run", "algo=td3", "encoder=gcn", *TINY, *SMALL_ENCODER["gcn"],
+            "train.total_frames=100000", "eval.episodes=2", "eval.scenes=[hotel]", f"out={tmp_path}"]
+    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    ckpt = tmp_path / "checkpoint.pt"
+    deadline = time.time() + 240
+    while time.time() < deadline and not (ckpt.exists() and load_checkpoint(ckpt)["frames"] >= 256):
+        time.sleep(0.5)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    saved = load_checkpoint(ckpt)["frames"]
+    assert saved >= 256
+    before = read_log(tmp_path, "updates")
+    rc = main(["run", "algo=td3", "encoder=gcn", *TINY, *SMALL_ENCODER["gcn"], f"train.total_frames={saved + 128}",
+               "eval.episodes=2", "eval.scenes=[hotel]", f"out={tmp_path}", "resume=true"])
+    assert rc == 0
+    after = read_log(tmp_path, "updates")
+    kept = [r for r in before if r[0] <= saved]
+    assert after[: len(kept)] == kept and after[-1][0] == saved + 128
+    assert load_checkpoint(ckpt)["frames"] == saved + 128
+    assert (tmp_path / "results.json").exists()
+
+
+def test_corrupted_checkpoint_and_bad_names(tmp_path, capsys):
+    bad = tmp_path / "checkpoint.pt"
+    bad.write_bytes(b"not a zip file at all")
+    with pytest.raises(CheckpointError, match="corrupted or unsafe checkpoint"):
+        load_checkpoint(bad)
+    assert main(["eval", f"policy={bad}", f"out={tmp_path / 'e'}"]) == 2
+    err = capsys.readouterr().err
+    assert "corrupted or unsafe checkpoint" in err and err.count("\n") == 1
+    # a pickled object (code) is refused by weights_only loading
+    torch.save({"format": "crowdbench-checkpoint-v1", "obj": CheckpointError("x")}, bad)
+    with pytest.raises(CheckpointError, match="corrupted or unsafe"):
+        load_checkpoint(bad)
+    assert main(["run", "encoder=transformer9000"]) == 2
+    assert "unknown encoder 'transformer9000'; valid choices:" in capsys.readouterr().err
+    assert main(["run", "algo=ppo"]) == 2
+    assert "unknown algo 'ppo'; valid choices: ddpg, sac, td3" in capsys.readouterr().err
+    assert main(["run", "resume=true"]) == 2
+    assert "resume=true needs out=" in capsys.readouterr().err
