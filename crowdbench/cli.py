@@ -120,9 +120,26 @@ def cmd_eval(overrides: list[str]) -> int:
     return 0
 
 
+def make_probe(cfg):
+    """Held-out check during training: success on ``probe_episodes`` of ``probe_scene``'s protocol list."""
+    from crowdbench.algos.checkpoint import LearnedPolicy
+    from crowdbench.data.scenes import check_scene
+    from crowdbench.eval import evaluate
+
+    scene = check_scene(cfg.train.probe_scene)
+
+    def probe(actor) -> dict[str, float]:
+        res = evaluate(LearnedPolicy(actor, frame=cfg.env.frame), [scene], cfg.train.probe_episodes,
+                       sim_overrides=SimConfig.fields_of(cfg.env))["scenes"][scene]
+        return {f"probe_{scene}_success": res["success_rate"]["mean"],
+                f"probe_{scene}_collision": res["collision_rate"]["mean"]}
+
+    return probe
+
+
 def cmd_run(overrides: list[str]) -> int:
     """Train on the training scene, checkpoint periodically, then evaluate on the protocol."""
-    from crowdbench.algos.checkpoint import CheckpointError, policy_from_checkpoint
+    from crowdbench.algos.checkpoint import policy_from_checkpoint
     from crowdbench.algos.train import train
 
     cfg = compose(overrides)
@@ -131,10 +148,14 @@ def cmd_run(overrides: list[str]) -> int:
         raise UsageError("resume=true needs out=<run directory> (the run to continue)")
     out = output_dir(cfg, "run", f"{cfg.algo.name}-{cfg.encoder.name}")
     try:
-        stats = train(cfg, out, resume=bool(cfg.resume))
+        try:
+            probe = make_probe(cfg)
+        except ValueError as e:
+            raise UsageError(str(e)) from None
+        stats = train(cfg, out, resume=bool(cfg.resume), probe=probe)
         print(f"trained {stats['frames']} frames, {stats['updates']} updates; checkpoint {out / 'checkpoint.pt'}")
         policy = policy_from_checkpoint(out / "checkpoint.pt")
-    except CheckpointError as e:
+    except ValueError as e:  # CheckpointError included: bad checkpoint, bad algo/replay/logger value
         raise UsageError(str(e)) from None
     run_eval(policy, cfg, out, overrides)
     return 0

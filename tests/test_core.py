@@ -6,7 +6,15 @@ import pytest
 import torch
 
 from crowdbench.data.scenes import Scene, load_scene
-from crowdbench.envs.core import COLLISION, RUNNING, SUCCESS, TIMEOUT, CrowdSim, SimConfig, segment_min_distance
+from crowdbench.envs.core import (
+    COLLISION,
+    RUNNING,
+    SUCCESS,
+    TIMEOUT,
+    CrowdSim,
+    SimConfig,
+    segment_min_distance,
+)
 
 
 def toy_scene(tracks, n_steps=12, dt=1.0):

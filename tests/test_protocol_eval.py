@@ -125,3 +125,21 @@ def test_collisions_recheckable_from_raw_positions(tmp_path):
             if hit:
                 break
         assert hit == (row["outcome"] == "collision"), row["episode"]
+
+
+def test_train_sampler_avoids_occupied_starts():
+    from crowdbench.envs.core import CrowdSim
+
+    scene = load_scene("students001")
+    sim = CrowdSim(scene, 1)
+
+    def occupied(t0, angle):
+        c = scene.centre.double()
+        start = c + 4 * torch.stack((torch.cos(angle.double()), torch.sin(angle.double())), -1)
+        gaps = [(scene.pos[t][scene.valid[t]].double() - s).norm(dim=-1) - 0.3 for t, s in zip(t0.tolist(), start)]
+        return torch.tensor([bool((g < 0.3 - 1e-4).any()) for g in gaps])
+
+    raw = TrainSampler(sim.last_start, seed=1)(1000)
+    assert occupied(*raw).sum() >= 30  # the dense training scene really has occupied starts
+    t0, angle = TrainSampler(sim.last_start, seed=1, is_free=sim.start_is_free)(1000)
+    assert not occupied(t0, angle).any()

@@ -55,6 +55,20 @@ def make_buffer(a: DictConfig):
     return rb
 
 
+def make_logger(kind: str, out_dir: Path):
+    """TorchRL's CSV logger (``logs/scalars/<name>.csv``), or its TensorBoard logger if installed."""
+    if kind == "csv":
+        return CSVLogger(exp_name="logs", log_dir=str(out_dir))
+    if kind == "tensorboard":
+        from torchrl.record.loggers.tensorboard import TensorboardLogger
+
+        try:
+            return TensorboardLogger(exp_name="tensorboard", log_dir=str(out_dir))
+        except ImportError as e:
+            raise ValueError(f"train.logger=tensorboard needs the tensorboard package ({e})") from None
+    raise ValueError(f"unknown train.logger {kind!r}; valid: csv, tensorboard")
+
+
 def per_transition(err: torch.Tensor, n: int) -> torch.Tensor:
     """One priority per sampled transition: the largest error over twin critics and agents."""
     if err.shape[0] != n:  # TD3 stacks its critics first: [2, n, ...]
@@ -69,8 +83,13 @@ def truncate_log(log_dir: Path, frames: int) -> None:
         f.write_text("".join(f"{r[0]},{r[1]}\n" for r in rows))
 
 
-def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool = True) -> dict:
-    """Train per ``cfg`` into ``out_dir`` (``checkpoint.pt``, ``logs/``); return final stats."""
+def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool = True, probe=None) -> dict:
+    """Train per ``cfg`` into ``out_dir`` (``checkpoint.pt``, ``logs/``); return final stats.
+
+    ``probe(actor) -> dict[str, float]``, if given, is called every ``train.probe_every`` frames
+    and its scalars are logged (the CLI passes a held-out evaluation; algos do not import eval).
+    Training stops at ``train.total_frames`` or after ``train.max_minutes`` of wall time.
+    """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     ckpt_path = out_dir / "checkpoint.pt"
@@ -112,7 +131,7 @@ def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool =
         frames, updates = int(state["frames"]), int(state["updates"])
         truncate_log(out_dir / "logs", frames)
 
-    logger = CSVLogger(exp_name="logs", log_dir=str(out_dir))
+    logger = make_logger(t.logger, out_dir)
     fpb = t.frames_per_batch
     remaining = t.total_frames - frames
     if remaining <= 0:
@@ -125,13 +144,13 @@ def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool =
         auto_register_policy_transforms=False,
     )
 
-    def save():
+    def save(wall_time_s: float):
         save_checkpoint(ckpt_path, {
             "config": OmegaConf.to_container(cfg, resolve=True), "actor": actor.state_dict(),
             "loss": loss.state_dict(), "opt_actor": opt_actor.state_dict(), "opt_critic": opt_critic.state_dict(),
             **({"opt_alpha": opt_alpha.state_dict()} if opt_alpha is not None else {}),
             "sampler": env.sampler.state_dict(), "torch_rng": torch.get_rng_state(),
-            "frames": frames, "updates": updates,
+            "frames": frames, "updates": updates, "wall_time_s": wall_time_s,
         })
 
     def update(sample, n: int) -> dict[str, float]:
@@ -158,7 +177,8 @@ def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool =
         return out
 
     bar = tqdm(total=t.total_frames, initial=frames, disable=not progress, unit="frame", dynamic_ncols=True)
-    last_ckpt, start = frames, time.time()
+    last_ckpt, last_probe, start = frames, frames, time.time()
+    elapsed0 = float(state.get("wall_time_s", 0.0)) if state is not None else 0.0
     window: list[tuple[int, float]] = []  # (outcome, return) of recently finished episodes
     stats: dict = {}
     for batch in collector:
@@ -185,15 +205,20 @@ def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool =
             }
             logs.update(stats)
         logs["updates"] = updates
-        logs["wall_time_s"] = time.time() - start
+        logs["wall_time_s"] = wall = elapsed0 + time.time() - start
+        if probe is not None and frames - last_probe >= t.probe_every:
+            logs.update(probe(actor))
+            last_probe = frames
         for k, v in logs.items():
             logger.log_scalar(k, v, step=frames)
         bar.update(batch.numel())
         bar.set_postfix({k: f"{v:.2f}" for k, v in stats.items()} | {"upd": updates})
         if frames - last_ckpt >= t.checkpoint_every:
-            save()
+            save(wall)
             last_ckpt = frames
-    save()
+        if t.max_minutes and wall >= 60 * t.max_minutes:
+            break
+    save(wall)
     bar.close()
     collector.shutdown()
     return {"frames": frames, "updates": updates, **stats}

@@ -165,7 +165,7 @@ def load_scene(name: str, dt: float = 0.25, time_base: str = "true") -> Scene:
     period = row_period(key, time_base)
     n_steps, tracks = interpolate_tracks(rows, period, dt)
     pos, prev, vel, ped = pack_slots(n_steps, tracks)
-    f32 = lambda a: torch.as_tensor(a, dtype=torch.float32)  # noqa: E731
+    f32 = lambda a: torch.as_tensor(a, dtype=torch.float32)
     return Scene(
         name=key,
         dt=dt,

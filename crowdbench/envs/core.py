@@ -22,6 +22,7 @@ from crowdbench.data.scenes import Scene
 RUNNING, SUCCESS, COLLISION, TIMEOUT = 0, 1, 2, 3
 OUTCOMES = {SUCCESS: "success", COLLISION: "collision", TIMEOUT: "timeout"}
 _FAR = 1e6  # clearance reported when no human is present
+START_CLEARANCE = 0.3  # m: a start point closer than this to a present human is not used
 
 
 @dataclass
@@ -92,6 +93,16 @@ def to_world(vec: torch.Tensor, heading: torch.Tensor) -> torch.Tensor:
     return torch.stack((c * x - s * y, s * x + c * y), -1)
 
 
+def free_start(scene: Scene, t0: torch.Tensor, start: torch.Tensor, margin: float, radius_sum: float) -> torch.Tensor:
+    """``[n]`` bool: no human present at grid index ``t0`` is within ``margin`` clearance of ``start`` ``[n, 2]``.
+
+    An episode that starts inside (or touching) a pedestrian is a collision no policy can avoid.
+    """
+    pos, valid = scene.pos[t0].to(start.dtype), scene.valid[t0]
+    gap = (pos - start.unsqueeze(-2)).norm(dim=-1) - radius_sum
+    return ((gap >= margin) | ~valid).all(-1)
+
+
 class CrowdSim:
     """``B`` environments replaying one scene; ``A`` = 1 robot per environment."""
 
@@ -126,6 +137,9 @@ class CrowdSim:
         u = torch.stack((torch.cos(angle), torch.sin(angle)), -1)
         c = self.scene.centre
         return c + self.cfg.start_radius * u, c - self.cfg.start_radius * u
+
+    def start_is_free(self, t0: torch.Tensor, angle: torch.Tensor, margin: float = START_CLEARANCE) -> torch.Tensor:
+        return free_start(self.scene, t0, self.start_goal(angle.to(torch.float32))[0], margin, self.radius_sum)
 
     def reset(self, mask: torch.Tensor, t0: torch.Tensor, angle: torch.Tensor) -> None:
         """Reset the environments where ``mask`` ([B] bool) is set.

@@ -92,9 +92,9 @@ class CrowdParallelEnv(ParallelEnv):
     # ------------------------------------------------------------------ episodes
     def reset(self, seed: int | None = None, options: dict | None = None):
         if seed is not None:
-            self._sampler = TrainSampler(self.sim.last_start, seed)
+            self._sampler = TrainSampler(self.sim.last_start, seed, self.sim.start_is_free)
         elif self._sampler is None:
-            self._sampler = TrainSampler(self.sim.last_start, secrets.randbits(63))
+            self._sampler = TrainSampler(self.sim.last_start, secrets.randbits(63), self.sim.start_is_free)
         t0, angle = self._sampler(1)  # always drawn, so the sampler stream does not depend on options
         options = options or {}
         if "t0" in options:

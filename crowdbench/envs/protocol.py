@@ -19,6 +19,7 @@ from pathlib import Path
 import torch
 
 from crowdbench.data.scenes import check_scene, load_scene
+from crowdbench.envs.core import START_CLEARANCE, SimConfig, free_start
 
 PROTOCOL_VERSION = "v1"
 PROTOCOL_DIR = Path(__file__).resolve().parents[1] / "data" / f"protocol_{PROTOCOL_VERSION}"
@@ -27,6 +28,7 @@ EXTRA_SCENES = ("zara1", "zara3", "uni_examples")
 EVAL_SCENES = PAPER_SCENES + EXTRA_SCENES
 TRAIN_SCENE = "students001"
 GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
+RADIUS_SUM = SimConfig.robot_radius + SimConfig.human_radius
 
 
 @dataclass(frozen=True)
@@ -39,18 +41,12 @@ class ProtocolSpec:
     time_base: str = "true"
     start_radius: float = 4.0
     # the start point must be free at t0: every human >= this clearance from the robot's disc
-    start_clearance: float = 0.3
+    start_clearance: float = START_CLEARANCE
 
 
 def last_start(scene_name: str, spec: ProtocolSpec) -> int:
     scene = load_scene(scene_name, spec.dt, spec.time_base)
     return scene.n_steps - 1 - spec.time_limit
-
-
-def free_start(scene, t: int, start: torch.Tensor, spec: ProtocolSpec, radius_sum: float = 0.3) -> bool:
-    pos, valid = scene.pos[t].double(), scene.valid[t]
-    gap = (pos - start).norm(dim=-1) - radius_sum
-    return bool((gap[valid] >= spec.start_clearance).all())
 
 
 def nearest_free_start(scene, t0: int, hi: int, start: torch.Tensor, spec: ProtocolSpec) -> int:
@@ -61,7 +57,7 @@ def nearest_free_start(scene, t0: int, hi: int, start: torch.Tensor, spec: Proto
     """
     for d in range(hi + 1):
         for t in (t0 + d, t0 - d):
-            if 0 <= t <= hi and free_start(scene, t, start, spec):
+            if 0 <= t <= hi and free_start(scene, torch.tensor([t]), start[None], spec.start_clearance, RADIUS_SUM):
                 return t
     raise ValueError(f"scene {scene.name}: the start point is never free")
 
@@ -124,15 +120,31 @@ def load_episodes(scene_name: str) -> dict:
 
 
 class TrainSampler:
-    """Random start time and angle (the training distribution, SPEC section 3)."""
+    """Random start time and angle (the training distribution, SPEC section 3).
 
-    def __init__(self, last_start: int, seed: int = 0):
+    With ``is_free(t0, angle) -> [n] bool`` (e.g. ``CrowdSim.start_is_free``), draws whose
+    start point is occupied are redrawn, as the evaluation lists avoid them.
+    """
+
+    def __init__(self, last_start: int, seed: int = 0, is_free=None):
         self.last_start = last_start
         self.gen = torch.Generator().manual_seed(seed)
+        self.is_free = is_free
+
+    def draw(self, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+        t0 = torch.randint(0, self.last_start + 1, (n,), generator=self.gen)
+        angle = torch.rand(n, generator=self.gen) * (2 * math.pi)
+        return t0, angle
 
     def __call__(self, batch: int) -> tuple[torch.Tensor, torch.Tensor]:
-        t0 = torch.randint(0, self.last_start + 1, (batch,), generator=self.gen)
-        angle = torch.rand(batch, generator=self.gen) * (2 * math.pi)
+        t0, angle = self.draw(batch)
+        if self.is_free is None:
+            return t0, angle
+        for _ in range(100):  # ~10% of students001 draws are occupied: a few rounds suffice
+            bad = ~self.is_free(t0, angle)
+            if not bad.any():
+                break
+            t0[bad], angle[bad] = self.draw(int(bad.sum()))
         return t0, angle
 
     def state_dict(self) -> dict:

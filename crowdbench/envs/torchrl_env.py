@@ -39,7 +39,7 @@ class CrowdEnv(EnvBase):
         super().__init__(batch_size=torch.Size([batch]), device="cpu")
         self.cfg = cfg
         self.sim = CrowdSim(load_scene(scene, cfg.dt, cfg.time_base), batch, cfg)
-        self.sampler = TrainSampler(self.sim.last_start, seed)
+        self.sampler = TrainSampler(self.sim.last_start, seed, self.sim.start_is_free)
         self.episodes = episodes
         self._next_episode = 0
         self._make_specs()
@@ -118,4 +118,4 @@ class CrowdEnv(EnvBase):
         return out
 
     def _set_seed(self, seed: int | None) -> None:
-        self.sampler = TrainSampler(self.sim.last_start, 0 if seed is None else seed)
+        self.sampler = TrainSampler(self.sim.last_start, 0 if seed is None else seed, self.sim.start_is_free)
