@@ -519,3 +519,21 @@ def test_heads_and_prepared_path_work_with_a_minimal_encoder(real_obs):
     torch.testing.assert_close(prep.get(ACTION), raw.get(ACTION))
     q = TwinCritic(critic)(*obs_args(real_obs), raw.get(ACTION))
     assert q.shape == (2, 12, 1, 1)
+
+
+def test_radial_actor_stays_in_speed_disc_and_keeps_gradient():
+    from crowdbench.models.heads import Actor
+
+    enc = make_encoder("mlp", dim=8, hidden=[16])
+    for squash, bound in (("radial", 1.0), ("box", 2**0.5)):
+        actor = Actor(enc, [8], v_max=1.0, squash=squash)
+        h = torch.randn(64, 8) * 100  # far into saturation
+        h.requires_grad_(True)
+        a = actor.act(h)
+        assert a.norm(dim=-1).max() <= bound + 1e-5
+        if squash == "radial":
+            # the direction still responds to the input even when the speed saturates
+            a[:, 1].sum().backward()
+            assert h.grad.abs().sum() > 0
+    with pytest.raises(ValueError, match="unknown actor squash"):
+        Actor(enc, squash="disk")

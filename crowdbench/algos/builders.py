@@ -49,13 +49,13 @@ def leaf_action_spec(n_agents: int, v_max: float) -> Bounded:
     return Bounded(-v_max, v_max, (n_agents, 2))
 
 
-def build_actor(algo: str, encoder_cfg: dict, v_max: float, hidden=None) -> TensorDictModule:
+def build_actor(algo: str, encoder_cfg: dict, v_max: float, hidden=None, squash: str = "radial") -> TensorDictModule:
     """The policy network: deterministic (TD3, DDPG) or a TanhNormal ``ProbabilisticActor`` (SAC)."""
     if algo not in ALGOS:
         raise ValueError(f"unknown algo {algo!r}; valid: {', '.join(ALGOS)}")
     encoder = make_encoder(**encoder_cfg)
     if algo != "sac":
-        return actor_module(Actor(encoder, hidden, v_max))
+        return actor_module(Actor(encoder, hidden, v_max, squash))
     params = TensorDictModule(GaussianHead(encoder, hidden), in_keys=list(OBS_KEYS),
                               out_keys=[(GROUP, "loc"), (GROUP, "scale")])
     return ProbabilisticActor(

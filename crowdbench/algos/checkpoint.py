@@ -65,7 +65,8 @@ def policy_from_checkpoint(path: Path) -> LearnedPolicy:
     state = load_checkpoint(path)
     cfg = state["config"]
     try:
-        actor = build_actor(cfg["algo"]["name"], dict(cfg["encoder"]), cfg["env"]["v_max"])
+        actor = build_actor(cfg["algo"]["name"], dict(cfg["encoder"]), cfg["env"]["v_max"],
+                            squash=cfg["algo"].get("actor_squash", "box"))
         actor.load_state_dict(state["actor"])
     except (KeyError, RuntimeError, ValueError, TypeError) as e:
         reason = " ".join(str(e).split())[:200]

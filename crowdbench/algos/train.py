@@ -106,7 +106,7 @@ def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool =
     algo = a.name
     env = CrowdEnv(cfg.env.scene, cfg.env.batch, SimConfig(**SimConfig.fields_of(cfg.env)), seed=cfg.seed)
     n_agents, v_max = env.n_agents, cfg.env.v_max
-    actor = build_actor(algo, OmegaConf.to_container(cfg.encoder), v_max)
+    actor = build_actor(algo, OmegaConf.to_container(cfg.encoder), v_max, squash=a.actor_squash)
     critic = build_critic(OmegaConf.to_container(cfg.encoder))
     loss = build_loss(algo, actor, critic, n_agents, v_max, a)
     target_updater = SoftUpdate(loss, tau=a.tau)

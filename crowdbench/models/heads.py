@@ -78,21 +78,36 @@ def mlp(sizes: list[int]) -> nn.Sequential:
 
 
 class Actor(nn.Module):
-    """Deterministic policy ``a = v_max * tanh(MLP(robot_h))``; ``hidden=None`` -> ``(out_dim,)``.
+    """Deterministic policy ``z = MLP(robot_h)`` squashed by tanh; ``hidden=None`` -> ``(out_dim,)``.
+
+    ``squash="radial"`` (default): ``a = v_max * tanh(|z|) * z / |z|``, inside the speed disc.
+    ``squash="box"``: ``a = v_max * tanh(z)`` per component. The simulator clips the speed to
+    ``v_max``, so every box action beyond the disc acts like its radial projection: the critic
+    sees no difference, the policy drifts into a corner where tanh saturates and its gradient
+    vanishes. A 30-minute TD3 run with ``box`` froze at a ≈ (1, 1) (the robot spirals in at 45
+    degrees to its goal); ``radial`` keeps every output meaningful.
 
     ``forward(robot [*, 6], humans [*, M, 4], humans_mask [*, M]) -> action [*, 2]`` (or a
     TensorDict holding the observation as the only argument).
     """
 
-    def __init__(self, encoder: nn.Module, hidden: tuple | list | None = None, v_max: float = 1.0):
+    def __init__(self, encoder: nn.Module, hidden: tuple | list | None = None, v_max: float = 1.0,
+                 squash: str = "radial"):
         super().__init__()
+        if squash not in ("radial", "box"):
+            raise ValueError(f"unknown actor squash {squash!r}; valid: radial, box")
         self.encoder = encoder
         self.v_max = v_max
+        self.squash = squash
         hidden = list(hidden) if hidden is not None else [encoder.out_dim]
         self.head = mlp([encoder.out_dim, *hidden, 2])
 
     def act(self, robot_h: torch.Tensor) -> torch.Tensor:
-        return self.v_max * torch.tanh(self.head(robot_h))
+        z = self.head(robot_h)
+        if self.squash == "box":
+            return self.v_max * torch.tanh(z)
+        norm = z.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+        return self.v_max * torch.tanh(norm) * (z / norm)
 
     def forward(self, robot, humans=None, humans_mask=None) -> torch.Tensor:
         _, h = self.encoder(*unpack_obs(robot, humans, humans_mask))
