@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import sys
 import time
 from pathlib import Path
@@ -37,26 +38,31 @@ def compose(overrides: list[str]):
 
 def _hydra_message(err: Exception, overrides: list[str]) -> str:
     """Turn Hydra's multi-line errors into one line naming the key and the valid choices."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+    from hydra.errors import HydraException
     from omegaconf import OmegaConf
 
     text = " ".join(str(err).split())
-    if "Could not find" in text and "Available options" in text:
-        group = text.split("Could not find '")[1].split("/")[0]
+    missing = re.search(r"Could not find '([^/']+)/([^']+)'", text)
+    if missing:
+        group, choice = missing.groups()
         opts = sorted(p.stem for p in (CONFIG_DIR / group).glob("*.yaml"))
-        return f"unknown {group} {text.split('/')[1].split(chr(39))[0]!r}; valid choices: {', '.join(opts)}"
-    if "Could not override" in text or "not in struct" in text or "Key '" in text:
-        key = text.split("Could not override '")[1].split("'")[0] if "Could not override" in text else text
-        parent = key.rsplit(".", 1)[0] if "." in key else ""
-        with_defaults = [o for o in overrides if "=" in o and "." not in o.split("=")[0]]
-        from hydra import compose as hydra_compose
-        from hydra import initialize_config_dir
-
+        return f"unknown {group} {choice!r}; valid choices: {', '.join(opts)}"
+    bad = re.search(r"Could not override '([^']+)'", text) or re.search(r"Key '([^']+)' is not in struct", text)
+    if not bad:
+        return f"bad override: {text}"
+    key = bad.group(1)
+    parent = key.rsplit(".", 1)[0] if "." in key else ""
+    # list the keys of the config the user composed (group choices kept, the bad key dropped)
+    groups = [o for o in overrides if "=" in o and "." not in o.split("=")[0] and o.split("=")[0] != key]
+    try:
         with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base=None):
-            base = hydra_compose(config_name="config", overrides=[o for o in with_defaults if o.split("=")[0] != key])
-        node = OmegaConf.select(base, parent) if parent else base
-        valid = ", ".join(sorted(node.keys())) if node is not None and hasattr(node, "keys") else "?"
-        return f"unknown config key {key!r}; valid keys{' under ' + repr(parent) if parent else ''}: {valid}"
-    return f"bad override: {text}"
+            node = OmegaConf.select(hydra_compose(config_name="config", overrides=groups), parent or "")
+        valid = ", ".join(sorted(node.keys()))
+    except (HydraException, AttributeError):
+        valid = "?"
+    return f"unknown config key {key!r}; valid keys{' under ' + repr(parent) if parent else ''}: {valid}"
 
 
 def make_policy(name: str, cfg):
