@@ -179,10 +179,10 @@ def evaluate(policy: Policy, scenes=PAPER_SCENES, episodes: int | None = None, o
         results["sim_config"] = asdict(cfg)
     paper = [s for s in PAPER_SCENES if s in results["scenes"]]
     if paper:
-        results["average_paper_scenes"] = {
-            k: sum(results["scenes"][s][k]["mean"] or 0.0 for s in paper) / len(paper)
-            for k in ("success_rate", "collision_rate", "timeout_rate", "nav_time_s", "dangers_per_episode")
-        }
+        means = {k: [results["scenes"][s][k]["mean"] for s in paper]
+                 for k in ("success_rate", "collision_rate", "timeout_rate", "nav_time_s", "dangers_per_episode")}
+        # an undefined scene value (no successful episode: no nav time) leaves the average undefined
+        results["average_paper_scenes"] = {k: None if None in v else sum(v) / len(v) for k, v in means.items()}
     if out_dir is not None:
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -207,7 +207,8 @@ def format_table(results: dict) -> str:
         lines.append(f"{scene:<13}" + "".join(f"{c:>22}" for c in cells))
     if "average_paper_scenes" in results:
         a = results["average_paper_scenes"]
-        lines.append(f"{'avg (paper)':<13}" + "".join(f"{a.get(k, float('nan')):>22.3f}" for k, _ in cols if k in a))
+        lines.append(f"{'avg (paper)':<13}" + "".join(f"{'n/a' if a[k] is None else f'{a[k]:.3f}':>22}"
+                                                      for k, _ in cols if k in a))
     return "\n".join(lines)
 
 
