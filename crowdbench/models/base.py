@@ -98,6 +98,7 @@ class GraphEncoder(nn.Module):
     """
 
     uses_edges = True
+    layer_cls: type[nn.Module]  # one message-passing layer, built as layer_cls(dim, **layer_kwargs)
 
     def __init__(
         self,
@@ -106,6 +107,7 @@ class GraphEncoder(nn.Module):
         k: int = DEFAULT_K,
         radius2: float = RADIUS2,
         receptive_field: bool = True,
+        **layer_kwargs,
     ):
         super().__init__()
         self.out_dim = self.dim = dim
@@ -118,6 +120,7 @@ class GraphEncoder(nn.Module):
         self.goal_emb = nn.Linear(6, dim)
         self.edge_emb = nn.Linear(2, dim) if self.uses_edges else None
         self._last_aux = None
+        self.layers = nn.ModuleList(self.layer_cls(dim, **layer_kwargs) for _ in range(layers))
 
     # ------------------------------------------------------------------ graph
     def build_graph(self, robot, humans=None, humans_mask=None) -> Graph:

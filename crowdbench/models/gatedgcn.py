@@ -130,6 +130,7 @@ class GatedGCNEncoder(GraphEncoder):
     """MP-GatedGCN: residual gated message passing with edge features (Eq. 3-7)."""
 
     uses_edges = True
+    layer_cls = GatedLayer
 
     def __init__(
         self,
@@ -140,5 +141,4 @@ class GatedGCNEncoder(GraphEncoder):
         receptive_field: bool = True,
         eps: float = 1e-6,
     ):
-        super().__init__(dim, layers, k, radius2, receptive_field)
-        self.layers = nn.ModuleList(GatedLayer(dim, eps) for _ in range(layers))
+        super().__init__(dim, layers, k, radius2, receptive_field, eps=eps)

@@ -17,7 +17,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from crowdbench.models.base import GraphEncoder, indicator_row
-from crowdbench.models.graph import DEFAULT_K, RADIUS2, Z_DIM
+from crowdbench.models.graph import Z_DIM
 
 
 class MeanLayer(nn.Module):
@@ -62,14 +62,4 @@ class GCNEncoder(GraphEncoder):
     """Residual GCN with uniform (mean) aggregation."""
 
     uses_edges = False
-
-    def __init__(
-        self,
-        dim: int = 256,
-        layers: int = 2,
-        k: int = DEFAULT_K,
-        radius2: float = RADIUS2,
-        receptive_field: bool = True,
-    ):
-        super().__init__(dim, layers, k, radius2, receptive_field)
-        self.layers = nn.ModuleList(MeanLayer(dim) for _ in range(layers))
+    layer_cls = MeanLayer
