@@ -118,9 +118,21 @@ def run_eval(policy, cfg, out: Path, overrides: list[str]) -> dict:
     return results
 
 
+def check_protocol_fixed(cfg) -> None:
+    """The protocol fixes dt, time limit, time base and start radius; refuse an override of them."""
+    from crowdbench.envs.protocol import ProtocolSpec
+
+    spec, env = ProtocolSpec(), SimConfig.fields_of(cfg.env)
+    for key in ("dt", "time_limit", "time_base", "start_radius"):
+        if str(env[key]) != str(getattr(spec, key)):
+            raise UsageError(f"env.{key}={env[key]} conflicts with protocol {spec.version} ({getattr(spec, key)}); "
+                             "evaluation always uses the protocol's value")
+
+
 def cmd_eval(overrides: list[str]) -> int:
     cfg = compose(overrides)
     eval_options(cfg)  # reject bad scenes before loading anything
+    check_protocol_fixed(cfg)
     policy = make_policy(str(cfg.policy), cfg)
     run_eval(policy, cfg, output_dir(cfg, "eval", str(cfg.policy)), overrides)
     return 0

@@ -25,6 +25,7 @@ def test_eval_straight_writes_results(tmp_path, capsys):
     (["eval", "policy=teleport"], "unknown policy 'teleport'; valid: orca, straight"),
     (["eval", "eval.episodes=0"], "eval.episodes must be a positive integer"),
     (["fly"], "unknown command 'fly'"),
+    (["eval", "env.time_base=0.4"], "env.time_base=0.4 conflicts with protocol v1"),
 ])
 def test_bad_input_one_line_error(args, message, capsys, tmp_path):
     assert main(args + [f"out={tmp_path}"] if args[0] == "eval" else args) == 2
