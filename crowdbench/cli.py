@@ -73,7 +73,8 @@ def make_policy(name: str, cfg):
     if name == "orca":
         from crowdbench.baselines.orca import ORCA
 
-        return ORCA(v_max=cfg.env.v_max, dt=cfg.env.dt)
+        return ORCA(v_max=cfg.env.v_max, dt=cfg.env.dt, robot_radius=cfg.env.robot_radius,
+                    human_radius=cfg.env.human_radius, seed=cfg.seed, **cfg.orca)
     if name.endswith(".pt") or Path(name).exists():
         from crowdbench.algos.checkpoint import CheckpointError, policy_from_checkpoint
 

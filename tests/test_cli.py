@@ -32,3 +32,14 @@ def test_bad_input_one_line_error(args, message, capsys, tmp_path):
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1
     assert not (tmp_path / "results.json").exists()
+
+
+def test_orca_parameters_from_config(tmp_path):
+    """A zero safety margin (the textbook ORCA) collides more than the tuned default on students003."""
+    rates = {}
+    for margin in (0.0, 0.2):
+        out = tmp_path / str(margin)
+        assert main(["eval", "policy=orca", "eval.scenes=[students003]", "eval.episodes=60",
+                     f"orca.safety_margin={margin}", f"out={out}"]) == 0
+        rates[margin] = json.loads((out / "results.json").read_text())["scenes"]["students003"]["collision_rate"]["mean"]
+    assert rates[0.0] > rates[0.2]
