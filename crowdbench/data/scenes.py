@@ -99,6 +99,10 @@ class Scene:
     def duration(self) -> float:
         return (self.n_steps - 1) * self.dt
 
+    def last_start(self, time_limit: int) -> int:
+        """Latest grid index at which an episode of ``time_limit`` steps still fits in the recording."""
+        return self.n_steps - 1 - time_limit
+
     def count(self) -> torch.Tensor:
         """Humans present at each grid step, ``[T]``."""
         return self.valid.sum(-1)

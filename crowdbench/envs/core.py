@@ -129,8 +129,7 @@ class CrowdSim:
     # ------------------------------------------------------------------ episodes
     @property
     def last_start(self) -> int:
-        """Latest grid index at which an episode still fits in the recording."""
-        return self.scene.n_steps - 1 - self.cfg.time_limit
+        return self.scene.last_start(self.cfg.time_limit)
 
     def start_goal(self, angle: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Start and goal on the ``start_radius`` circle around the scene centre, diametrically opposed."""

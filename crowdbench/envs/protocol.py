@@ -44,11 +44,6 @@ class ProtocolSpec:
     start_clearance: float = START_CLEARANCE
 
 
-def last_start(scene_name: str, spec: ProtocolSpec) -> int:
-    scene = load_scene(scene_name, spec.dt, spec.time_base)
-    return scene.n_steps - 1 - spec.time_limit
-
-
 def nearest_free_start(scene, t0: int, hi: int, start: torch.Tensor, spec: ProtocolSpec) -> int:
     """``t0`` itself if the start point is free then, else the nearest free grid index in ``[0, hi]``.
 
@@ -66,16 +61,15 @@ def generate_episodes(scene_name: str, spec: ProtocolSpec = ProtocolSpec()) -> d
     """The episode list of one scene, as a JSON-ready dict. Pure function of (scene, spec)."""
     name = check_scene(scene_name)
     scene = load_scene(name, spec.dt, spec.time_base)
-    hi = last_start(name, spec)
+    hi = scene.last_start(spec.time_limit)
     n = spec.episodes
     g = torch.Generator().manual_seed(spec.seed * 1_000_003 + zlib.crc32(name.encode()))
     offset = torch.rand((), generator=g, dtype=torch.float64).item()
+    c, r = scene.centre.double().tolist(), spec.start_radius
     episodes = []
     for i in range(n):
         angle = 2 * math.pi * ((offset + i * GOLDEN) % 1.0)
         u = (math.cos(angle), math.sin(angle))
-        c = scene.centre.double().tolist()
-        r = spec.start_radius
         start = torch.tensor([c[0] + r * u[0], c[1] + r * u[1]], dtype=torch.float64)
         t0 = nearest_free_start(scene, round(i * hi / max(n - 1, 1)), hi, start, spec)
         episodes.append(
