@@ -34,6 +34,7 @@ from crowdbench.algos.checkpoint import CheckpointError, load_checkpoint, save_c
 from crowdbench.envs.core import COLLISION, SUCCESS, SimConfig
 from crowdbench.envs.policy import GROUP
 from crowdbench.envs.torchrl_env import CrowdEnv
+from crowdbench.models.heads import prepare_batch
 from crowdbench.models.perf import tune_allocator
 
 EPISODE_RETURN = (GROUP, "episode_reward")
@@ -104,11 +105,14 @@ def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool =
     tune_allocator()
     torch.manual_seed(cfg.seed)
     algo = a.name
-    env = CrowdEnv(cfg.env.scene, cfg.env.batch, SimConfig(**SimConfig.fields_of(cfg.env)), seed=cfg.seed)
+    env = CrowdEnv(cfg.env.scene, cfg.env.batch, SimConfig(**SimConfig.fields_of(cfg.env)), seed=cfg.seed,
+                   progress_reward=t.progress_reward)
     n_agents, v_max = env.n_agents, cfg.env.v_max
     actor = build_actor(algo, OmegaConf.to_container(cfg.encoder), v_max, squash=a.actor_squash)
     critic = build_critic(OmegaConf.to_container(cfg.encoder))
-    loss = build_loss(algo, actor, critic, n_agents, v_max, a)
+    prepared = algo != "sac"  # SAC's probabilistic actor reads the raw observation
+    loss = build_loss(algo, actor, critic, n_agents, v_max, a, prepared=prepared)
+    encoders = (actor.module.encoder, critic.module.encoder) if prepared else ()
     target_updater = SoftUpdate(loss, tau=a.tau)
     # fused Adam: one kernel for all parameters (~5x cheaper steps for many small tensors on CPU)
     opt_actor = torch.optim.Adam(actor_parameters(loss), lr=a.lr_actor, fused=True)
@@ -192,7 +196,10 @@ def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool =
         logs: dict[str, float] = {}
         if len(rb) >= a.warmup:
             for _ in range(max(1, int(t.utd * batch.numel()))):
-                logs.update(update(sample := rb.sample(), updates))
+                sample = rb.sample()
+                if prepared:
+                    prepare_batch(sample, *encoders)
+                logs.update(update(sample, updates))
                 updates += 1
                 if a.replay == "prioritized":
                     rb.update_tensordict_priority(sample)
