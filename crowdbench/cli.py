@@ -11,7 +11,7 @@ from crowdbench.envs.core import SimConfig
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
 COMMANDS = ("eval", "run")
-BASELINES = ("orca", "straight")
+BASELINES = ("orca", "straight", "oracle")
 
 
 class UsageError(Exception):
@@ -75,6 +75,10 @@ def make_policy(name: str, cfg):
 
         return ORCA(v_max=cfg.env.v_max, dt=cfg.env.dt, robot_radius=cfg.env.robot_radius,
                     human_radius=cfg.env.human_radius, seed=cfg.seed, **cfg.orca)
+    if name == "oracle":  # privileged: knows the replayed humans' future (an upper bound, not a policy)
+        from crowdbench.baselines.oracle import Oracle
+
+        return Oracle(**cfg.oracle)
     if name.endswith(".pt") or Path(name).exists():
         from crowdbench.algos.checkpoint import CheckpointError, policy_from_checkpoint
 
@@ -184,7 +188,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help"):
         print("usage: crowdbench {eval,run} [key=value ...]\n"
-              "  crowdbench eval policy=orca|straight|<checkpoint.pt> [eval.scenes=[eth,hotel]] [eval.episodes=N] "
+              "  crowdbench eval policy=orca|straight|oracle|<checkpoint.pt> [eval.scenes=[eth,hotel]] [eval.episodes=N] "
               "[eval.save_episodes=true] [out=DIR]\n"
               "  crowdbench run algo=td3|ddpg|sac encoder=gatedgcn|gcn|mlp [train.total_frames=N] [seed=S] "
               "[out=DIR] [resume=true]")
