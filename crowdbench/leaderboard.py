@@ -575,9 +575,10 @@ def diff_rows(old: str, new: str) -> list[str]:
 
 # ---------------------------------------------------------------------------------- main
 def run(root: Path = DEFAULT_ROOT, only: list[str] | None = None, check: bool = False, force: bool = False,
-        episodes: int | None = None, scenes: list[str] | None = None, log=print) -> int:
+        episodes: int | None = None, scenes: list[str] | None = None, log=None) -> int:
     """Validate, evaluate and render; returns the exit code (0 ok, 1 a submission failed or --check differs)."""
     root = Path(root)
+    log = log or (lambda msg: print(msg, flush=True))
     scenes = list(scenes or EVAL_SCENES)
     sub_root = root / "submissions"
     dirs = sorted(p for p in sub_root.iterdir() if p.is_dir()) if sub_root.is_dir() else []
