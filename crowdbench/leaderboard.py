@@ -574,8 +574,48 @@ def diff_rows(old: str, new: str) -> list[str]:
 
 
 # ---------------------------------------------------------------------------------- main
+def _job(sub: Submission, scenes: list[str], episodes: int | None, fp: str):
+    """Evaluate one validated submission: ``(results, seconds)`` or the :class:`SubmissionError`.
+
+    Single-threaded (``torch.set_num_threads(1)``) whatever the caller's setting, so the
+    floating-point reductions, and hence the numbers, do not depend on the machine or ``--jobs``.
+    """
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        t = time.time()
+        res = evaluate_submission(sub, build_policy(sub), scenes, episodes, fp)
+        return res, time.time() - t
+    except SubmissionError as e:
+        return e
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _job_in_worker(sub: Submission, scenes, episodes, fp):
+    out = _job(sub, scenes, episodes, fp)
+    # SubmissionError has a custom __init__ and does not survive pickling: send its parts
+    return ("error", out.path, out.field, out.message) if isinstance(out, SubmissionError) else ("ok", out)
+
+
+def _evaluate_all(todo: list, scenes: list[str], episodes: int | None, jobs: int):
+    """Yield ``(dir, submission, results path, (results, seconds) | SubmissionError)`` in ``todo`` order."""
+    if jobs <= 1 or len(todo) <= 1:
+        for d, sub, fp, res_path in todo:
+            yield d, sub, res_path, _job(sub, scenes, episodes, fp)
+        return
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as pool:
+        futures = [pool.submit(_job_in_worker, sub, scenes, episodes, fp) for _, sub, fp, _ in todo]
+        for (d, sub, _, res_path), fut in zip(todo, futures, strict=True):
+            out = fut.result()
+            yield d, sub, res_path, SubmissionError(*out[1:]) if out[0] == "error" else out[1]
+
+
 def run(root: Path = DEFAULT_ROOT, only: list[str] | None = None, check: bool = False, force: bool = False,
-        episodes: int | None = None, scenes: list[str] | None = None, log=None) -> int:
+        episodes: int | None = None, scenes: list[str] | None = None, log=None, jobs: int = 1) -> int:
     """Validate, evaluate and render; returns the exit code (0 ok, 1 a submission failed or --check differs)."""
     root = Path(root)
     log = log or (lambda msg: print(msg, flush=True))
@@ -590,8 +630,13 @@ def run(root: Path = DEFAULT_ROOT, only: list[str] | None = None, check: bool = 
     if unknown:
         log(f"crowdbench leaderboard: error: unknown submission(s) {', '.join(unknown)}; known: {', '.join(names)}")
         return 1
-    results, rejected, missing, failed = [], [], [], False
+    results, rejected, missing, todo = [], [], [], []
     t_all = time.time()
+
+    def reject(e: SubmissionError) -> None:
+        log(f"crowdbench leaderboard: error: {e}")
+        rejected.append(str(e).replace(str(root.resolve()) + "/", "").replace(str(root) + "/", ""))
+
     for d in dirs:
         res_path = root / "results" / d.name / "results.json"
         selected = only is None or d.name in only
@@ -610,24 +655,26 @@ def run(root: Path = DEFAULT_ROOT, only: list[str] | None = None, check: bool = 
                 else:
                     missing.append(f"{d.name}: results missing or out of date (`crowdbench leaderboard --only {d.name}`)")
                 continue
-            policy = build_policy(sub)
-            t = time.time()
-            res = evaluate_submission(sub, policy, scenes, episodes, fp)
-            log(f"{d.name}: evaluated in {time.time() - t:.1f} s; average success (paper scenes) "
-                f"{_fmt(res.get('average_paper_scenes', {}).get('success_rate'), 3)}")
-            results.append(res)
-            if not check:
-                res_path.parent.mkdir(parents=True, exist_ok=True)
-                res_path.write_text(json.dumps(res, indent=1) + "\n")
-                if sub.kind == "oracle":
-                    (res_path.parent / "unavoidable.json").write_text(json.dumps(
-                        {"privileged": True, "note": "episodes the privileged oracle fails: candidate unavoidable",
-                         "protocol": PROTOCOL_VERSION, "scenes": res["unavoidable"]}, indent=1) + "\n")
+            todo.append((d, sub, fp, res_path))
         except SubmissionError as e:
-            msg = str(e).replace(str(root.resolve()) + "/", "").replace(str(root) + "/", "")
-            log(f"crowdbench leaderboard: error: {e}")
-            rejected.append(msg)
-            failed = True
+            reject(e)
+    for d, sub, res_path, outcome in _evaluate_all(todo, scenes, episodes, jobs):
+        if isinstance(outcome, SubmissionError):
+            reject(outcome)
+            continue
+        res, seconds = outcome
+        log(f"{d.name}: evaluated in {seconds:.1f} s; average success (paper scenes) "
+            f"{_fmt(res.get('average_paper_scenes', {}).get('success_rate'), 3)}")
+        results.append(res)
+        if not check:
+            res_path.parent.mkdir(parents=True, exist_ok=True)
+            res_path.write_text(json.dumps(res, indent=1) + "\n")
+            if sub.kind == "oracle":
+                (res_path.parent / "unavoidable.json").write_text(json.dumps(
+                    {"privileged": True, "note": "episodes the privileged oracle fails: candidate unavoidable",
+                     "protocol": PROTOCOL_VERSION, "scenes": res["unavoidable"]}, indent=1) + "\n")
+    rejected.sort()
+    failed = bool(rejected)
     readme = render_readme(results, rejected, scenes, episodes, missing)
     log(f"leaderboard: {len(results)} evaluated/cached, {len(rejected)} rejected, {time.time() - t_all:.1f} s")
     if check:
@@ -658,6 +705,8 @@ def main(argv: list[str] | None = None) -> int:
                     "the others keep their cached results")
     ap.add_argument("--episodes", type=int, default=None, help="N episodes per scene (evenly strided; unofficial)")
     ap.add_argument("--scenes", default=None, help="comma-separated scene subset (unofficial)")
+    ap.add_argument("--jobs", type=int, default=1, help="evaluate N submissions in parallel processes "
+                    "(each single-threaded; the numbers do not depend on N)")
     ap.add_argument("--root", type=Path, default=DEFAULT_ROOT, help=f"leaderboard directory (default {DEFAULT_ROOT})")
     args = ap.parse_args(argv)
     if args.episodes is not None and args.episodes < 1:
@@ -671,7 +720,9 @@ def main(argv: list[str] | None = None) -> int:
         bad = [s for s in scenes if s not in EVAL_SCENES]
         if bad:
             ap.error(f"not an evaluation scene: {', '.join(bad)}; valid: {', '.join(EVAL_SCENES)}")
-    return run(args.root, args.only, args.check, args.force, args.episodes, scenes)
+    if args.jobs < 1:
+        ap.error("--jobs must be >= 1")
+    return run(args.root, args.only, args.check, args.force, args.episodes, scenes, jobs=args.jobs)
 
 
 __all__ = ["SubmissionError", "main", "read_submission", "render_readme", "run"]

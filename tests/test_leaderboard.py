@@ -194,3 +194,12 @@ def test_diff_rows_names_sections():
     b = a.replace("| two | 2 |", "| two | 3 |")
     (msg,) = diff_rows(a, b)
     assert msg.startswith("[A] row 'two': differs")
+
+
+def test_parallel_jobs_give_the_same_table(tmp_path):
+    root = tmp_path / "lb"
+    add_straight(root)
+    add_toy(root)
+    assert run(root, log=lambda m: None, **FAST) == 0
+    log = []
+    assert run(root, check=True, jobs=2, log=log.append, **FAST) == 0, log  # 2 worker processes, same numbers
