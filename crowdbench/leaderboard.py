@@ -534,15 +534,17 @@ def plot(results: list[dict], scenes: list[str], out: Path) -> None:
                 lo.append(max(m - a, 0))
                 hi.append(max(b - m, 0))
             ax.bar([x + (i - (len(groups) - 1) / 2) * width for x in xs], means, width, yerr=[lo, hi], capsize=2,
-                   label=label(g))
+                   label=label(g), color=plt.get_cmap("tab20")(i % 20))
     for ax, title in zip(axes, ("success rate (95% CI; seeds: ± sd)", "dangers per episode"), strict=True):
         ax.set_xticks(list(xs), scenes, rotation=30, ha="right")
         ax.set_title(title)
         ax.grid(axis="y", alpha=0.3)
     axes[0].set_ylim(0, 1.05)
-    axes[0].legend(fontsize=7, loc="lower left")
+    handles, labels = axes[0].get_legend_handles_labels()
+    ncol = min(len(groups), 4)
+    fig.legend(handles, labels, loc="lower center", ncol=ncol, fontsize=8, frameon=False)
     fig.suptitle(f"crowdbench leaderboard, protocol {PROTOCOL_VERSION} (oracle = privileged upper bound)")
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.04 + 0.035 * math.ceil(len(groups) / ncol), 1, 1))
     fig.savefig(out, dpi=110, metadata={"Software": None})
     plt.close(fig)
 
