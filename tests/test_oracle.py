@@ -68,11 +68,13 @@ def test_oracle_batch_several_crossings(monkeypatch):
 
 def test_oracle_beats_orca_obeys_v_max_and_is_deterministic(tmp_path):
     scene, n = "students003", 12
-    res_o = ev.evaluate(Oracle(), [scene], n, out_dir=tmp_path / "o", save_episodes=True,
+    oracle = Oracle()
+    res_o = ev.evaluate(oracle, [scene], n, out_dir=tmp_path / "o", save_episodes=True,
                         sim_overrides={"frame": "world"})
     res_c = ev.evaluate(ORCA(), [scene], n)
     so, sc = res_o["scenes"][scene]["success_rate"]["mean"], res_c["scenes"][scene]["success_rate"]["mean"]
     assert so >= sc and so == 1.0
+    assert (oracle.planned_outcome == PLANNED_SUCCESS).all()  # what it planned is what happened
     assert res_o["privileged"] is True
     rows = [json.loads(line) for line in (tmp_path / "o" / "episodes.jsonl").read_text().splitlines()]
     assert len(rows) == n
