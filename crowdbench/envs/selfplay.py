@@ -91,7 +91,7 @@ class SelfPlayConfig(SimConfig):
 def sample_episodes(n: int, cfg: SelfPlayConfig, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
     """``n`` episodes of ``cfg.scenario``: start and goal ``[n, A, 2]`` relative to the scene centre."""
     A = cfg.n_agents
-    u = lambda *s: torch.rand(*s, generator=gen)  # noqa: E731
+    u = lambda *s: torch.rand(*s, generator=gen)
     if cfg.scenario == "circle":
         ang = u(n, 1) * 2 * math.pi + torch.arange(A) * (2 * math.pi / A)
         ring = cfg.circle_radius * torch.stack((ang.cos(), ang.sin()), -1)

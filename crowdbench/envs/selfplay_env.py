@@ -26,7 +26,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from crowdbench.envs.core import OUTCOMES, RUNNING, SUCCESS, COLLISION
+from crowdbench.envs.core import COLLISION, OUTCOMES, RUNNING, SUCCESS
 from crowdbench.envs.policy import GROUP
 from crowdbench.envs.selfplay import EpisodeSampler, SelfPlayConfig, SelfPlaySim
 
@@ -65,7 +65,7 @@ class SelfPlayEnv(EnvBase):
         self.observation_spec = Composite({GROUP: agent_obs}, shape=(B,))
         self.action_spec = Composite({GROUP: Composite(action=Bounded(-v, v, (B, A, 2)), shape=(B, A))}, shape=(B,))
         self.reward_spec = Composite({GROUP: Composite(reward=Unbounded((B, A, 1)), shape=(B, A))}, shape=(B,))
-        flag = lambda *s: Categorical(2, s, dtype=torch.bool)  # noqa: E731
+        flag = lambda *s: Categorical(2, s, dtype=torch.bool)
         self.done_spec = Composite(
             done=flag(B, 1), terminated=flag(B, 1), truncated=flag(B, 1),
             **{GROUP: Composite(done=flag(B, A, 1), terminated=flag(B, A, 1), truncated=flag(B, A, 1), shape=(B, A))},
@@ -87,7 +87,7 @@ class SelfPlayEnv(EnvBase):
     def _reset(self, tensordict: TensorDictBase | None, **kwargs) -> TensorDictBase:
         B = self.batch_size[0]
         mask = torch.ones(B, dtype=torch.bool)
-        if tensordict is not None and "_reset" in tensordict.keys():
+        if tensordict is not None and "_reset" in tensordict:
             mask = tensordict["_reset"].reshape(B, -1).any(-1)
         if not mask.any() and self._last is not None:
             # an agent-level "_reset" only (some agents done, no environment done): nothing to reset
