@@ -31,9 +31,10 @@ from crowdbench.algos.builders import (
     exploration_policy,
 )
 from crowdbench.algos.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from crowdbench.envs.core import COLLISION, SUCCESS, SimConfig
+from crowdbench.algos.multiagent import agent_transitions, finished_episodes
+from crowdbench.envs.core import COLLISION, SUCCESS
+from crowdbench.envs.factory import make_env
 from crowdbench.envs.policy import GROUP
-from crowdbench.envs.torchrl_env import CrowdEnv
 from crowdbench.models.perf import tune_allocator
 
 EPISODE_RETURN = (GROUP, "episode_reward")
@@ -104,11 +105,12 @@ def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool =
     tune_allocator()
     torch.manual_seed(cfg.seed)
     algo = a.name
-    env = CrowdEnv(cfg.env.scene, cfg.env.batch, SimConfig(**SimConfig.fields_of(cfg.env)), seed=cfg.seed)
+    env = make_env(cfg)  # replay (one robot) or self-play (n agents, one shared-weight policy)
     n_agents, v_max = env.n_agents, cfg.env.v_max
     actor = build_actor(algo, OmegaConf.to_container(cfg.encoder), v_max, squash=a.actor_squash)
     critic = build_critic(OmegaConf.to_container(cfg.encoder))
-    loss = build_loss(algo, actor, critic, n_agents, v_max, a)
+    # the buffer holds one agent per transition (self-play flattens agents into the batch: algos/multiagent.py)
+    loss = build_loss(algo, actor, critic, 1, v_max, a)
     target_updater = SoftUpdate(loss, tau=a.tau)
     # fused Adam: one kernel for all parameters (~5x cheaper steps for many small tensors on CPU)
     opt_actor = torch.optim.Adam(actor_parameters(loss), lr=a.lr_actor, fused=True)
@@ -183,11 +185,9 @@ def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool =
     stats: dict = {}
     for batch in collector:
         frames += batch.numel()
-        done = batch["next", "done"].squeeze(-1)
-        outcome = batch["next", GROUP, "info", "outcome"][..., 0][done]
-        ret = batch["next", EPISODE_RETURN][..., 0, 0][done]
-        window = (window + list(zip(outcome.tolist(), ret.tolist(), strict=True)))[-t.stats_window:]
-        rb.extend(batch.select(*KEEP).reshape(-1))
+        outcome, ret = finished_episodes(batch, EPISODE_RETURN)  # per agent episode
+        window = (window + list(zip(outcome, ret, strict=True)))[-t.stats_window:]
+        rb.extend(agent_transitions(batch, KEEP))
 
         logs: dict[str, float] = {}
         if len(rb) >= a.warmup:

@@ -82,8 +82,10 @@ class SelfPlayConfig(SimConfig):
                              f"(neighbours {gap:.2f} m apart at worst, need > {2 * self.robot_radius}); "
                              "raise env.circle_radius")
         if self.scenario == "square" and self.n_agents * self.min_spacing > 2 * self.square_width:
-            raise ValueError(f"{self.n_agents} agents {self.min_spacing} m apart do not fit on two sides of "
-                             f"{self.square_width} m; raise env.square_width")
+            # random sequential placement on the 4 sides jams well before they are full
+            raise ValueError(f"{self.n_agents} agents {self.min_spacing} m apart do not fit on the sides of a "
+                             f"{self.square_width} m square (need n * min_spacing <= 2 * width); "
+                             "raise env.square_width")
         if self.min_spacing <= 2 * self.robot_radius:
             raise ValueError(f"min_spacing must exceed two robot radii ({2 * self.robot_radius} m)")
 
@@ -103,35 +105,35 @@ def sample_episodes(n: int, cfg: SelfPlayConfig, gen: torch.Generator) -> tuple[
     return start, goal
 
 
-def _square(n: int, cfg: SelfPlayConfig, gen: torch.Generator, tries: int = 100) -> tuple[torch.Tensor, torch.Tensor]:
-    """Random start/goal pairs on opposite sides of the square, resampled until ``min_spacing`` holds.
+def _square(n: int, cfg: SelfPlayConfig, gen: torch.Generator, tries: int = 500) -> tuple[torch.Tensor, torch.Tensor]:
+    """Random start/goal pairs on opposite sides of the square, ``min_spacing`` apart.
 
-    Rejection sampling over the whole batch (a loop over attempts, not over agents or envs):
-    every environment whose starts or goals are too close redraws all of them.
+    Sequential rejection, vectorised over environments and agents (the loop is over attempts):
+    every agent whose start or goal is too close to a lower-numbered agent's redraws both.
     """
     A, half = cfg.n_agents, cfg.square_width / 2
-    start = torch.zeros(n, A, 2)
-    goal = torch.zeros(n, A, 2)
-    todo = torch.ones(n, dtype=torch.bool)
-    eye = torch.eye(A, dtype=torch.bool)
+    earlier = torch.ones(A, A, dtype=torch.bool).tril(-1)  # [i, j]: j < i
+
+    def draw(k: int):
+        side = torch.randint(0, 4, (k,), generator=gen)  # 0: x=-h, 1: x=+h, 2: y=-h, 3: y=+h
+        along_s = (2 * torch.rand(k, generator=gen) - 1) * half
+        along_g = (2 * torch.rand(k, generator=gen) - 1) * half
+        sign = torch.where(side % 2 == 0, -half, half)
+        vertical = (side < 2).unsqueeze(-1)  # start on a vertical side: x fixed
+        s = torch.where(vertical, torch.stack((sign, along_s), -1), torch.stack((along_s, sign), -1))
+        g = torch.where(vertical, torch.stack((-sign, along_g), -1), torch.stack((along_g, -sign), -1))
+        return s, g
+
+    start, goal = (x.view(n, A, 2) for x in draw(n * A))
     for _ in range(tries):
-        k = int(todo.sum())
+        close = torch.zeros(n, A, A, dtype=torch.bool)
+        for pts in (start, goal):
+            close |= (pts.unsqueeze(1) - pts.unsqueeze(2)).norm(dim=-1) < cfg.min_spacing
+        bad = (close & earlier).any(-1)  # [n, A]
+        k = int(bad.sum())
         if k == 0:
             return start, goal
-        side = torch.randint(0, 4, (k, A), generator=gen)  # 0: x=-h, 1: x=+h, 2: y=-h, 3: y=+h
-        along_s = (2 * torch.rand(k, A, generator=gen) - 1) * half
-        along_g = (2 * torch.rand(k, A, generator=gen) - 1) * half
-        sign = torch.where(side % 2 == 0, -half, half)
-        vertical = side < 2  # start on a vertical side: x fixed
-        s = torch.where(vertical.unsqueeze(-1), torch.stack((sign, along_s), -1), torch.stack((along_s, sign), -1))
-        g = torch.where(vertical.unsqueeze(-1), torch.stack((-sign, along_g), -1), torch.stack((along_g, -sign), -1))
-        ok = torch.ones(k, dtype=torch.bool)
-        for pts in (s, g):
-            d = (pts.unsqueeze(1) - pts.unsqueeze(2)).norm(dim=-1).masked_fill(eye, math.inf)
-            ok &= (d >= cfg.min_spacing).flatten(1).all(-1)
-        idx = todo.nonzero().squeeze(-1)
-        start[idx[ok]], goal[idx[ok]] = s[ok], g[ok]
-        todo[idx[ok]] = False
+        start[bad], goal[bad] = draw(k)
     raise ValueError(f"could not place {A} agents {cfg.min_spacing} m apart in {tries} tries; "
                      "raise env.square_width or lower env.min_spacing")
 
