@@ -64,7 +64,7 @@ class SelfPlayConfig(SimConfig):
     circle_radius: float = 4.0  # m
     square_width: float = 8.0  # m, side of the square (start and goal sides are this far apart)
     jitter: float = 0.1  # m, uniform noise per axis on every start and goal
-    min_spacing: float = 0.8  # m, square crossing: min centre distance between starts (and between goals)
+    min_spacing: float = 0.8  # m, square crossing: min distance between starts (and between goals), before jitter
     background: str = ""  # scene name of replayed ETH/UCY background humans; "" = none
     done_agents: str = "vanish"  # vanish | obstacle
 
