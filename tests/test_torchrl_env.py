@@ -60,3 +60,20 @@ def test_nan_action_raises():
     td["agents", "action"] = torch.full((1, 1, 2), math.nan)
     with pytest.raises(ValueError, match="NaN"):
         env.step(td)
+
+
+def test_progress_reward_pays_per_metre_towards_the_goal():
+    """Rotated frame: action (0.6, 0.8) moves 0.15 m towards the goal and 0.2 m sideways in 0.25 s."""
+    t0, angle = torch.tensor([30, 60]), torch.tensor([0.3, 2.0])
+    plain = CrowdEnv("students003", 2, episodes=(t0, angle))
+    shaped = CrowdEnv("students003", 2, episodes=(t0, angle), progress_reward=0.5)
+    action = torch.tensor([[[0.6, 0.8]], [[0.0, 0.0]]])
+    rewards = []
+    for env in (plain, shaped):
+        td = env.reset()
+        td["agents", "action"] = action
+        rewards.append(env.step(td)["next", "agents", "reward"][:, 0, 0])
+    # distance to goal 8 m before; after: sqrt((8 - 0.15)^2 + 0.2^2)
+    progress = 8.0 - math.hypot(8.0 - 0.15, 0.2)
+    assert rewards[1][0] - rewards[0][0] == pytest.approx(0.5 * progress, abs=1e-5)
+    assert rewards[1][1] == rewards[0][1]  # standing still earns nothing

@@ -69,9 +69,17 @@ def build_critic(encoder_cfg: dict, hidden=None) -> TensorDictModule:
     return critic_module(Critic(make_encoder(**encoder_cfg), hidden))
 
 
-def build_loss(algo: str, actor, critic, n_agents: int, v_max: float, a: dict):
-    """TorchRL loss with the ``agents`` keys and a TD(0) target (Algorithm 1, line 13)."""
+def build_loss(algo: str, actor, critic, n_agents: int, v_max: float, a: dict, prepared: bool = False):
+    """TorchRL loss with the ``agents`` keys and a TD(0) target (Algorithm 1, line 13).
+
+    ``prepared=True`` (TD3, DDPG): the loss reads graphs that :func:`prepare_batch` built once
+    per sampled batch instead of rebuilding them for the actor, both critics and the targets
+    (six graph constructions per update otherwise). ``actor`` stays the raw-observation module
+    for acting; the loss gets a prepared view sharing its parameters."""
     spec = leaf_action_spec(n_agents, v_max)
+    if prepared and algo != "sac":
+        actor = actor_module(actor.module, prepared=True)
+        critic = critic_module(critic.module, prepared=True)
     if algo == "td3":
         loss = TD3Loss(actor, critic, action_spec=spec, num_qvalue_nets=2, policy_noise=a["policy_noise"],
                        noise_clip=a["noise_clip"], loss_function=a["loss_function"], use_prioritized_weights=False)

@@ -35,6 +35,7 @@ from crowdbench.algos.multiagent import agent_transitions, finished_episodes
 from crowdbench.envs.core import COLLISION, SUCCESS
 from crowdbench.envs.factory import make_env
 from crowdbench.envs.policy import GROUP
+from crowdbench.models.heads import prepare_batch
 from crowdbench.models.perf import tune_allocator
 
 EPISODE_RETURN = (GROUP, "episode_reward")
@@ -105,12 +106,15 @@ def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool =
     tune_allocator()
     torch.manual_seed(cfg.seed)
     algo = a.name
-    env = make_env(cfg)  # replay (one robot) or self-play (n agents, one shared-weight policy)
+    # replay (one robot) or self-play (n agents, one shared-weight policy); progress shaping for training only
+    env = make_env(cfg, progress_reward=t.progress_reward)
     n_agents, v_max = env.n_agents, cfg.env.v_max
     actor = build_actor(algo, OmegaConf.to_container(cfg.encoder), v_max, squash=a.actor_squash)
     critic = build_critic(OmegaConf.to_container(cfg.encoder))
+    prepared = algo != "sac"  # SAC's probabilistic actor reads the raw observation
     # the buffer holds one agent per transition (self-play flattens agents into the batch: algos/multiagent.py)
-    loss = build_loss(algo, actor, critic, 1, v_max, a)
+    loss = build_loss(algo, actor, critic, 1, v_max, a, prepared=prepared)
+    encoders = (actor.module.encoder, critic.module.encoder) if prepared else ()
     target_updater = SoftUpdate(loss, tau=a.tau)
     # fused Adam: one kernel for all parameters (~5x cheaper steps for many small tensors on CPU)
     opt_actor = torch.optim.Adam(actor_parameters(loss), lr=a.lr_actor, fused=True)
@@ -192,7 +196,10 @@ def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool =
         logs: dict[str, float] = {}
         if len(rb) >= a.warmup:
             for _ in range(max(1, int(t.utd * batch.numel()))):
-                logs.update(update(sample := rb.sample(), updates))
+                sample = rb.sample()
+                if prepared:
+                    prepare_batch(sample, *encoders)
+                logs.update(update(sample, updates))
                 updates += 1
                 if a.replay == "prioritized":
                     rb.update_tensordict_priority(sample)

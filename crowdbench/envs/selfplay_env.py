@@ -36,9 +36,11 @@ class SelfPlayEnv(EnvBase):
 
     batch_locked = True
 
-    def __init__(self, batch: int = 1, cfg: SelfPlayConfig | None = None, seed: int = 0):
+    def __init__(self, batch: int = 1, cfg: SelfPlayConfig | None = None, seed: int = 0,
+                 progress_reward: float = 0.0):
         cfg = cfg or SelfPlayConfig()
         super().__init__(batch_size=torch.Size([batch]), device="cpu")
+        self.progress_reward = float(progress_reward)  # training-only shaping, as CrowdEnv's
         self.cfg = cfg
         self.sim = SelfPlaySim(batch, cfg)
         self.sampler = EpisodeSampler(self.sim, seed)
@@ -102,9 +104,13 @@ class SelfPlayEnv(EnvBase):
         return self._last.clone()
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        before = (self.sim.goal - self.sim.pos).norm(dim=-1)
         info = self.sim.step(tensordict[GROUP, "action"])
+        reward = info.reward
+        if self.progress_reward:  # c per metre of progress to the goal; done agents do not move: zero
+            reward = reward + self.progress_reward * (before - (self.sim.goal - self.sim.pos).norm(dim=-1))
         out = self._output(info.clearance, info.extra["agent_clearance"])
-        out[GROUP].set("reward", info.reward.unsqueeze(-1))
+        out[GROUP].set("reward", reward.unsqueeze(-1))
         self._last = out.exclude((GROUP, "reward"))
         return out
 

@@ -29,14 +29,20 @@ class CrowdEnv(EnvBase):
         seed: seed of the training sampler (random start time and angle).
         episodes: optional ``(t0 [E], angle [E])``: a fixed list replayed in order
             (episode ``i`` goes to the ``i``-th environment that resets); wraps around.
+        progress_reward: training-only shaping ``c * (d_before - d_after)`` per step, ``d`` the
+            distance to the goal (0 = the paper's reward, Eq. 1-2). It pays ``c`` per metre of
+            progress, so stalling earns nothing (see docs/training.md for why it is needed at
+            CPU budgets); evaluation never uses it.
     """
 
     batch_locked = True
 
     def __init__(self, scene: str = "students001", batch: int = 1, cfg: SimConfig | None = None,
-                 seed: int = 0, episodes: tuple[torch.Tensor, torch.Tensor] | None = None):
+                 seed: int = 0, episodes: tuple[torch.Tensor, torch.Tensor] | None = None,
+                 progress_reward: float = 0.0):
         cfg = cfg or SimConfig()
         super().__init__(batch_size=torch.Size([batch]), device="cpu")
+        self.progress_reward = float(progress_reward)
         self.cfg = cfg
         self.sim = CrowdSim(load_scene(scene, cfg.dt, cfg.time_base), batch, cfg)
         self.sampler = TrainSampler(self.sim.last_start, seed, self.sim.start_is_free)
@@ -107,10 +113,15 @@ class CrowdEnv(EnvBase):
         return out
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        before = (self.sim.goal - self.sim.pos).norm(dim=-1)
         info = self.sim.step(tensordict[GROUP, "action"])
+        reward = info.reward
+        if self.progress_reward:
+            # frozen (finished) agents do not move: their progress is exactly zero
+            reward = reward + self.progress_reward * (before - (self.sim.goal - self.sim.pos).norm(dim=-1))
         out = self._observation(info.outcome, info.clearance)
         term, trunc = info.terminated.unsqueeze(-1), info.truncated.unsqueeze(-1)
-        out[GROUP].update({"reward": info.reward.unsqueeze(-1), "terminated": term, "truncated": trunc,
+        out[GROUP].update({"reward": reward.unsqueeze(-1), "terminated": term, "truncated": trunc,
                            "done": term | trunc})
         # an environment is done when all its agents are; truncated if not all terminated
         done, terminated = (term | trunc).all(1), term.all(1)

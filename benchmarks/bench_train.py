@@ -1,0 +1,84 @@
+"""Training speed: actor latency, one TD3 update per encoder preset, and the whole training loop.
+
+    python benchmarks/bench_train.py                      # all sections, 2 threads
+    python benchmarks/bench_train.py --sections loop --loop-frames 4096
+
+- ``latency`` and ``td3``: the sections of ``bench_models.py`` (actor decision at B = 1 on a
+  crowded students001 observation; one TD3 update at batch 100 for every encoder preset).
+- ``loop``: ``crowdbench.algos.train.train`` exactly as ``crowdbench run`` calls it (TD3,
+  16 envs, PER, utd 0.5), timed after the warm-up from its own log: env-steps/s and
+  updates/s of collection + updates together, for each fast encoder preset.
+
+Timings on a shared machine are noisy: the load average is printed with the figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+
+def read_scalar(run: Path, name: str) -> list[tuple[int, float]]:
+    rows = csv.reader((run / "logs" / "scalars" / f"{name}.csv").read_text().splitlines())
+    return [(int(float(r[0])), float(r[1])) for r in rows if r]
+
+
+def loop_section(frames: int, encoders: list[str], threads: int) -> None:
+    from crowdbench.algos.train import train
+    from crowdbench.cli import compose
+
+    print(f"\n## whole training loop (TD3, 16 envs, utd 0.5, PER), {frames} frames after a 2,000-frame warm-up")
+    print(f"  {'encoder':16s}{'env-steps/s':>14s}{'updates/s':>12s}{'ms/update':>12s}{'load avg':>10s}")
+    for enc in encoders:
+        with tempfile.TemporaryDirectory() as tmp:
+            cfg = compose([f"encoder={enc}", f"train.total_frames={2048 + frames}", "train.probe_every=100000000",
+                           "train.checkpoint_every=100000000"])
+            torch.set_num_threads(threads)
+            train(cfg, Path(tmp), progress=False)
+            wall = read_scalar(Path(tmp), "wall_time_s")
+            upd = read_scalar(Path(tmp), "updates")
+            # rows from the first collection that ran updates to the end
+            first = next(i for i, (_, u) in enumerate(upd) if u > 0)
+            df = wall[-1][0] - wall[first][0]
+            dt = wall[-1][1] - wall[first][1]
+            du = upd[-1][1] - upd[first][1]
+            print(f"  {enc:16s}{df / dt:14.1f}{du / dt:12.1f}{1000 * dt / max(du, 1):12.1f}"
+                  f"{os.getloadavg()[0]:10.2f}")
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--reps", type=int, default=20)
+    ap.add_argument("--sections", default="latency,td3,loop")
+    ap.add_argument("--loop-frames", type=int, default=4096)
+    ap.add_argument("--encoders", default="gatedgcn_fast,gcn_fast,mlp_fast")
+    args = ap.parse_args(argv)
+    import bench_models as bm
+
+    from crowdbench.models.perf import tune_allocator
+
+    torch.set_num_threads(args.threads)
+    tune_allocator()
+    torch.manual_seed(0)
+    print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, load average {os.getloadavg()[0]:.2f}")
+    sections = args.sections.split(",")
+    if "latency" in sections:
+        bm.latency_section(args.reps)
+    if "td3" in sections:
+        o, a, info, o2 = bm.transition("students001", 100)
+        bm.td3_section(o, a, info, o2, args.reps, quick=False)
+    if "loop" in sections:
+        loop_section(args.loop_frames, args.encoders.split(","), args.threads)
+
+
+if __name__ == "__main__":
+    main()
