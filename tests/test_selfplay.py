@@ -229,3 +229,14 @@ def test_run_selfplay_end_to_end_and_transfer(tmp_path, capsys):
                  "env.eval_scenarios=[circle]", "env.eval_episodes=2", f"out={tmp_path / 'sp'}"]) == 0
     assert "circle_n8" in json.loads((tmp_path / "sp" / "results.json").read_text())["settings"]
     assert policy.name == "td3-gatedgcn"
+
+
+@pytest.mark.parametrize(("algo", "encoder"), [("sac", "mlp_fast"), ("ddpg", "gcn_fast")])
+def test_other_algos_and_encoders_train_in_selfplay_and_resume(algo, encoder, tmp_path):
+    from crowdbench.algos.train import train
+
+    base = ["env=selfplay", "env.n_agents=3", "env.scenario=square", f"algo={algo}", f"encoder={encoder}", *TINY]
+    train(compose([*base, "train.total_frames=64"]), tmp_path, progress=False)
+    stats = train(compose([*base, "train.total_frames=128"]), tmp_path, resume=True, progress=False)
+    assert stats["frames"] == 128 and stats["updates"] > 0
+    assert policy_from_checkpoint(tmp_path / "checkpoint.pt").name == f"{algo}-{encoder.split('_')[0]}"
