@@ -240,3 +240,10 @@ def test_other_algos_and_encoders_train_in_selfplay_and_resume(algo, encoder, tm
     stats = train(compose([*base, "train.total_frames=128"]), tmp_path, resume=True, progress=False)
     assert stats["frames"] == 128 and stats["updates"] > 0
     assert policy_from_checkpoint(tmp_path / "checkpoint.pt").name == f"{algo}-{encoder.split('_')[0]}"
+
+
+def test_bad_selfplay_settings_are_one_line_errors(capsys, tmp_path):
+    assert main(["eval", "env=selfplay", "env.scenario=hexagon", "policy=straight", f"out={tmp_path}"]) == 2
+    assert "unknown self-play scenario 'hexagon'; valid: circle, square" in capsys.readouterr().err
+    assert main(["eval", "env=selfplay", "env.n_agents=64", "policy=straight", f"out={tmp_path}"]) == 2
+    assert "raise env.circle_radius" in capsys.readouterr().err
