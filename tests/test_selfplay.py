@@ -196,7 +196,7 @@ def test_pettingzoo_agents_leave_when_done():
 
 
 def test_agent_count_is_a_config_override():
-    for n, scenario in ((5, "circle"), (12, "square")):
+    for n, scenario in ((5, "circle"), (12, "square"), (7, "mixed")):
         cfg = compose(["env=selfplay", f"env.n_agents={n}", f"env.scenario={scenario}", "env.batch=2"])
         env = make_env(cfg)
         assert env.n_agents == n and env.reset()[GROUP, "observation", "humans"].shape == (2, n, n, 4)

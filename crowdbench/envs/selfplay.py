@@ -21,7 +21,7 @@ Self-play additions:
   ``A`` agents first (its own slot and absent agents masked out), then the ``M`` background
   humans; so one shared-weight graph policy sees every other agent as a neighbour node.
 
-Scenarios (:func:`sample_episodes`): ``circle`` (agents evenly spaced on a circle of
+Scenarios (:func:`sample_episodes`; ``mixed``: each episode is one of the two, 50/50): ``circle`` (agents evenly spaced on a circle of
 ``circle_radius`` around the centre with a random rotation, goals at the antipodes, each
 point jittered by up to ``jitter`` m per axis) and ``square`` (each agent starts on a random
 side of a ``square_width`` square and heads for a random point of the opposite side; starts,
@@ -53,14 +53,14 @@ from crowdbench.envs.core import (
     to_world,
 )
 
-SCENARIOS = ("circle", "square")
+SCENARIOS = ("circle", "square", "mixed")
 DONE_AGENTS = ("vanish", "obstacle")
 
 
 @dataclass
 class SelfPlayConfig(SimConfig):
     n_agents: int = 8
-    scenario: str = "circle"  # circle | square
+    scenario: str = "circle"  # circle | square | mixed (each episode one of the two, 50/50)
     circle_radius: float = 4.0  # m
     square_width: float = 8.0  # m, side of the square (start and goal sides are this far apart)
     jitter: float = 0.1  # m, uniform noise per axis on every start and goal
@@ -77,11 +77,11 @@ class SelfPlayConfig(SimConfig):
         if self.n_agents < 1:
             raise ValueError(f"n_agents must be >= 1, got {self.n_agents}")
         gap = 2 * self.circle_radius * math.sin(math.pi / self.n_agents) - 2 * math.sqrt(2) * self.jitter
-        if self.scenario == "circle" and self.n_agents > 1 and gap <= 2 * self.robot_radius:
+        if self.scenario != "square" and self.n_agents > 1 and gap <= 2 * self.robot_radius:
             raise ValueError(f"{self.n_agents} agents do not fit on a circle of radius {self.circle_radius} m "
                              f"(neighbours {gap:.2f} m apart at worst, need > {2 * self.robot_radius}); "
                              "raise env.circle_radius")
-        if self.scenario == "square" and self.n_agents * self.min_spacing > 2 * self.square_width:
+        if self.scenario != "circle" and self.n_agents * self.min_spacing > 2 * self.square_width:
             # random sequential placement on the 4 sides jams well before they are full
             raise ValueError(f"{self.n_agents} agents {self.min_spacing} m apart do not fit on the sides of a "
                              f"{self.square_width} m square (need n * min_spacing <= 2 * width); "
@@ -94,12 +94,16 @@ def sample_episodes(n: int, cfg: SelfPlayConfig, gen: torch.Generator) -> tuple[
     """``n`` episodes of ``cfg.scenario``: start and goal ``[n, A, 2]`` relative to the scene centre."""
     A = cfg.n_agents
     u = lambda *s: torch.rand(*s, generator=gen)
-    if cfg.scenario == "circle":
+    if cfg.scenario != "square":
         ang = u(n, 1) * 2 * math.pi + torch.arange(A) * (2 * math.pi / A)
         ring = cfg.circle_radius * torch.stack((ang.cos(), ang.sin()), -1)
         start, goal = ring, -ring
-    else:
+    if cfg.scenario == "square":
         start, goal = _square(n, cfg, gen)
+    elif cfg.scenario == "mixed":  # (the circle and square streams above stay those of the pure scenarios)
+        sq_start, sq_goal = _square(n, cfg, gen)
+        pick = u(n, 1, 1) < 0.5
+        start, goal = torch.where(pick, sq_start, start), torch.where(pick, sq_goal, goal)
     start = start + cfg.jitter * (2 * u(n, A, 2) - 1)
     goal = goal + cfg.jitter * (2 * u(n, A, 2) - 1)
     return start, goal
