@@ -10,8 +10,8 @@ from pathlib import Path
 from crowdbench.envs.core import SimConfig
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
-COMMANDS = ("eval", "run")
-BASELINES = ("orca", "straight")
+COMMANDS = ("eval", "run", "leaderboard")
+BASELINES = ("orca", "straight", "oracle")
 
 
 class UsageError(Exception):
@@ -75,6 +75,10 @@ def make_policy(name: str, cfg):
 
         return ORCA(v_max=cfg.env.v_max, dt=cfg.env.dt, robot_radius=cfg.env.robot_radius,
                     human_radius=cfg.env.human_radius, seed=cfg.seed, **cfg.orca)
+    if name == "oracle":  # privileged: knows the replayed humans' future (an upper bound, not a policy)
+        from crowdbench.baselines.oracle import Oracle
+
+        return Oracle(**cfg.oracle)
     if name.endswith(".pt") or Path(name).exists():
         from crowdbench.algos.checkpoint import CheckpointError, policy_from_checkpoint
 
@@ -206,21 +210,29 @@ def cmd_run(overrides: list[str]) -> int:
     return 0
 
 
+def cmd_leaderboard(args: list[str]) -> int:
+    """Validate and evaluate leaderboard submissions, regenerate the table (argparse options, see --help)."""
+    from crowdbench.leaderboard import main as leaderboard_main
+
+    return leaderboard_main(args)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help"):
-        print("usage: crowdbench {eval,run} [key=value ...]\n"
-              "  crowdbench eval policy=orca|straight|<checkpoint.pt> [eval.scenes=[eth,hotel]] [eval.episodes=N] "
+        print("usage: crowdbench {eval,run,leaderboard} [key=value ...]\n"
+              "  crowdbench eval policy=orca|straight|oracle|<checkpoint.pt> [eval.scenes=[eth,hotel]] [eval.episodes=N] "
               "[eval.save_episodes=true] [out=DIR]\n"
               "  crowdbench run algo=td3|ddpg|sac encoder=gatedgcn|gcn|mlp [train.total_frames=N] [seed=S] "
               "[out=DIR] [resume=true]\n"
-              "  crowdbench run|eval env=selfplay [env.n_agents=N] [env.scenario=circle|square] ...  (docs/selfplay.md)")
+              "  crowdbench leaderboard [--check] [--force] [--only NAME] [--episodes N] [--scenes a,b] [--root DIR]\n"
+              "  crowdbench run|eval env=selfplay [env.n_agents=N] [env.scenario=circle|square|mixed] ...  (docs/selfplay.md)")
         return 0
     command, overrides = argv[0], argv[1:]
     try:
         if command not in COMMANDS:
             raise UsageError(f"unknown command {command!r}; valid commands: {', '.join(COMMANDS)}")
-        return {"eval": cmd_eval, "run": cmd_run}[command](overrides)
+        return {"eval": cmd_eval, "run": cmd_run, "leaderboard": cmd_leaderboard}[command](overrides)
     except UsageError as e:
         print(f"crowdbench: error: {e}", file=sys.stderr)
         return 2

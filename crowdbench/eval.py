@@ -65,6 +65,8 @@ def rollout(policy: Policy, scene: str, episodes: list[dict], cfg: SimConfig, re
     everyone = torch.ones(B, dtype=torch.bool)
     sim.reset(everyone, t0, angle)
     policy.reset(everyone)
+    if policy.privileged:  # the oracle: plans from the scene's future (docs/protocol.md, "Oracle")
+        policy.plan(sim)
     xy, clear, swept, reward, active = [sim.pos[:, 0].clone()], [], [], [], []
     clear0 = sim.min_clearance()[:, 0]
     for _ in range(cfg.time_limit):
@@ -164,6 +166,8 @@ def evaluate(policy: Policy, scenes=PAPER_SCENES, episodes: int | None = None, o
     """Evaluate ``policy`` on the saved protocol episode lists; optionally write results files."""
     scenes = [check_scene(s) for s in scenes]
     results = {"protocol": PROTOCOL_VERSION, "policy": policy.name, "meta": meta or {}, "scenes": {}}
+    if policy.privileged:
+        results["privileged"] = True
     rows = []
     for scene in scenes:
         saved = load_episodes(scene)
@@ -198,7 +202,8 @@ def format_table(results: dict) -> str:
     cols = [("success_rate", "success"), ("collision_rate", "collision"), ("timeout_rate", "timeout"),
             ("nav_time_s", "nav time s"), ("dangers_per_episode", "dangers/ep"), ("min_clearance", "min clear m")]
     head = f"{'scene':<13}" + "".join(f"{name:>22}" for _, name in cols)
-    lines = [f"policy: {results['policy']}  protocol: {results['protocol']}", head]
+    tag = "  [PRIVILEGED: knows the humans' future; an upper bound]" if results.get("privileged") else ""
+    lines = [f"policy: {results['policy']}  protocol: {results['protocol']}{tag}", head]
     for scene, r in results["scenes"].items():
         cells = []
         for key, _ in cols:

@@ -34,6 +34,10 @@ class Policy(ABC):
     frame: str = "rotate"
     #: short name used in results files
     name: str = "policy"
+    #: privileged policies (the oracle) see the simulator itself: :func:`crowdbench.eval.rollout`
+    #: calls ``plan(sim)`` right after the reset, before the first ``act``. Their numbers are upper
+    #: bounds, never comparable to a policy that only sees observations; results label them.
+    privileged: bool = False
 
     def reset(self, mask: torch.Tensor) -> None:
         """Called with a ``[B]`` mask of environments that start a new episode."""

@@ -1,0 +1,205 @@
+"""Leaderboard harness: valid and malformed submissions, external encoders, cache, --check."""
+
+from __future__ import annotations
+
+import importlib.metadata
+import re
+from pathlib import Path
+
+import pytest
+import torch
+from torch import nn
+
+from crowdbench.algos.builders import build_actor
+from crowdbench.algos.checkpoint import FORMAT, save_checkpoint
+from crowdbench.cli import main as cli_main
+from crowdbench.leaderboard import diff_rows, run
+from crowdbench.models import ENCODERS
+
+REPO = Path(__file__).resolve().parents[1]
+FAST = {"episodes": 2, "scenes": ["hotel"]}  # tests evaluate a subset (unofficial)
+
+
+def write_yaml(root: Path, name: str, text: str) -> Path:
+    d = root / "submissions" / name
+    d.mkdir(parents=True, exist_ok=True)
+    (d / "submission.yaml").write_text(text)
+    return d
+
+
+def toy_checkpoint(path: Path, encoder: dict, algo: str = "td3", actor_encoder: dict | None = None) -> None:
+    """A tiny untrained actor saved in the training checkpoint format (state dicts + config)."""
+    torch.manual_seed(0)
+    actor = build_actor(algo, dict(actor_encoder or encoder), 1.0, squash="radial")
+    cfg = {"algo": {"name": algo, "actor_squash": "radial"}, "encoder": dict(encoder),
+           "env": {"v_max": 1.0, "frame": "rotate"}}
+    save_checkpoint(path, {"config": cfg, "actor": actor.state_dict(), "frames": 0})
+
+
+MLP = {"name": "mlp", "dim": 8, "hidden": [16], "max_humans": 40}
+
+
+def learned_yaml(name, encoder="mlp", extra=""):
+    return (f"name: {name}\nkind: learned\nentry: Toy MLP\nencoder: {encoder}\nalgo: td3\nseed: 0\n"
+            f"authors: [tester]\n{extra}")
+
+
+def add_straight(root):
+    write_yaml(root, "straight", "name: straight\nkind: baseline\nentry: Straight to goal\npolicy: straight\n"
+                                 "authors: [crowdbench]\n")
+
+
+def add_toy(root, name="toy"):
+    d = write_yaml(root, name, learned_yaml(name))
+    toy_checkpoint(d / "checkpoint.pt", MLP)
+
+
+class Pickled(nn.Module):  # a checkpoint holding this object needs code execution to load
+    pass
+
+
+def test_valid_and_malformed_submissions(tmp_path):
+    root = tmp_path / "lb"
+    add_straight(root)
+    add_toy(root)
+    write_yaml(root, "bad_yaml", "name: bad_yaml\nkind: [learned\n")
+    write_yaml(root, "bad_encoder", learned_yaml("bad_encoder", encoder="nosuchencoder"))
+    toy_checkpoint(root / "submissions" / "bad_encoder" / "checkpoint.pt", MLP)
+    d = write_yaml(root, "bad_shapes", learned_yaml("bad_shapes"))
+    toy_checkpoint(d / "checkpoint.pt", MLP, actor_encoder={**MLP, "dim": 12})  # weights don't fit the config
+    d = write_yaml(root, "bad_pickle", learned_yaml("bad_pickle"))
+    cfg = {"algo": {"name": "td3"}, "encoder": MLP, "env": {"v_max": 1.0, "frame": "rotate"}}
+    torch.save({"format": FORMAT, "config": cfg, "actor": Pickled(), "frames": 0}, d / "checkpoint.pt")
+    write_yaml(root, "bad_field", "name: bad_field\nkind: baseline\npolicy: straight\n")  # no authors
+    write_yaml(root, "bad_type", "name: bad_type\nkind: baseline\npolicy: orca\nauthors: [a]\nseed: zero\n")
+    write_yaml(root, "bad_param", "name: bad_param\nkind: baseline\npolicy: orca\nauthors: [a]\n"
+                                  "overrides: {safety_marginn: 0.3}\n")
+    log = []
+    rc = run(root, log=log.append, **FAST)
+    assert rc == 1  # some submissions failed ...
+    text = "\n".join(log)
+    errors = [line for line in log if line.startswith("crowdbench leaderboard: error:")]
+    assert len(errors) == 7 and all("\n" not in e for e in errors)  # one line each
+
+    def err(name):
+        (line,) = [e for e in errors if f"submissions/{name}/submission.yaml" in e]
+        return line
+
+    assert "malformed YAML at line 3" in err("bad_yaml") and "expected ',' or ']'" in err("bad_yaml")
+    assert "field 'encoder'" in err("bad_encoder") and "unknown encoder 'nosuchencoder'" in err("bad_encoder")
+    assert "field 'checkpoint'" in err("bad_shapes") and "does not fit its model" in err("bad_shapes")
+    assert "field 'checkpoint'" in err("bad_pickle") and "unsafe" in err("bad_pickle")
+    assert "field 'authors': missing" in err("bad_field")
+    assert "field 'seed': must be an integer" in err("bad_type")
+    assert "field 'overrides.safety_marginn': unknown orca parameter" in err("bad_param")
+    # ... while the others still ran and appear in the generated table
+    assert "toy: evaluated" in text and "straight: evaluated" in text
+    readme = (root / "README.md").read_text()
+    assert readme.startswith("<!-- GENERATED") and "DO NOT EDIT" in readme
+    success = readme.split("## Success rate")[1].split("##")[0]
+    assert re.search(r"\| Toy MLP \| 1 \| \d\.\d{3} \[", success)
+    assert "| Straight to goal | 1 |" in success
+    assert "## Rejected submissions" in readme and "submissions/bad_pickle/submission.yaml" in readme
+    assert str(tmp_path) not in readme  # paths are relative to the leaderboard root
+    res = (root / "results" / "toy" / "results.json").read_text()
+    assert '"episode_outcomes"' in res and not (root / "results" / "bad_shapes").exists()
+    assert (root / "leaderboard.png").stat().st_size > 1000
+
+
+def test_check_cache_and_only(tmp_path):
+    root = tmp_path / "lb"
+    add_straight(root)
+    add_toy(root)
+    assert run(root, log=lambda m: None, **FAST) == 0
+    committed = (root / "README.md").read_text()
+    log = []
+    assert run(root, check=True, log=log.append, **FAST) == 0  # deterministic: a fresh evaluation matches
+    assert "matches" in log[-1]
+    # cache: unchanged submissions are not re-evaluated; --only limits the work
+    log.clear()
+    assert run(root, log=log.append, **FAST) == 0
+    assert any("toy: unchanged, cached" in m for m in log) and not any("evaluated in" in m for m in log)
+    log.clear()
+    assert run(root, only=["straight"], force=True, log=log.append, **FAST) == 0
+    assert any(m.startswith("straight: evaluated") for m in log) and not any(m.startswith("toy: ") for m in log)
+    assert (root / "README.md").read_text() == committed
+    # a hand-edited table is detected, naming the row
+    edited = re.sub(r"(\| Straight to goal \| 1 \| )\d\.\d{3}", r"\g<1>0.999", committed, count=1)
+    assert edited != committed
+    (root / "README.md").write_text(edited)
+    log.clear()
+    assert run(root, check=True, log=log.append, **FAST) == 1
+    assert "FAILED" in log[-1] and "[Success rate (Tables III / IV)] row 'Straight to goal'" in log[-1]
+    assert (root / "README.md").read_text() == edited  # --check writes nothing
+    # a changed submission is re-evaluated without --force
+    yaml = root / "submissions" / "toy" / "submission.yaml"
+    yaml.write_text(yaml.read_text() + "notes: changed\n")
+    log.clear()
+    run(root, log=log.append, **FAST)
+    assert any(m.startswith("toy: evaluated") for m in log)
+
+
+def test_seeds_grouped(tmp_path):
+    root = tmp_path / "lb"
+    for s in (0, 1):
+        d = write_yaml(root, f"toy_s{s}", learned_yaml(f"toy_s{s}").replace("seed: 0", f"seed: {s}"))
+        toy_checkpoint(d / "checkpoint.pt", MLP)
+    assert run(root, log=lambda m: None, **FAST) == 0
+    readme = (root / "README.md").read_text()
+    assert re.search(r"\| Toy MLP \| 2 \| \d\.\d{3} ± \d\.\d{3} \|", readme)  # mean ± sd across seeds
+    assert "## Per-seed results" in readme and "| Toy MLP | toy_s1 | 1 |" in readme
+
+
+def test_external_encoder_import_and_entry_point(tmp_path, monkeypatch):
+    monkeypatch.syspath_prepend(str(REPO))
+    from examples.tiny_encoder import TinyEncoder
+
+    root = tmp_path / "lb"
+    enc = {"name": "tiny_example", "dim": 8}
+    monkeypatch.setitem(ENCODERS, "tiny_example", TinyEncoder)  # to build the toy checkpoint; removed after
+    d = write_yaml(root, "tiny", learned_yaml("tiny", "tiny_example", "encoder_import: examples.tiny_encoder:TinyEncoder\n"))
+    toy_checkpoint(d / "checkpoint.pt", enc)
+    ep = importlib.metadata.EntryPoint(name="tiny_ep", value="examples.tiny_encoder:TinyEncoder",
+                                       group="crowdbench.encoders")
+    monkeypatch.setattr(importlib.metadata, "entry_points", lambda group=None: [ep] if group == ep.group else [])
+    monkeypatch.setitem(ENCODERS, "tiny_ep", TinyEncoder)
+    d = write_yaml(root, "tiny_ep", learned_yaml("tiny_ep", "tiny_ep", "encoder_entry_points: crowdbench.encoders\n")
+                   .replace("Toy MLP", "Tiny (entry point)"))
+    toy_checkpoint(d / "checkpoint.pt", {"name": "tiny_ep", "dim": 8})
+    del ENCODERS["tiny_example"], ENCODERS["tiny_ep"]  # the harness must register them itself
+    d = write_yaml(root, "tiny_bad", learned_yaml("tiny_bad", "tiny_bad", "encoder_import: examples.nothere:X\n"))
+    toy_checkpoint(d / "checkpoint.pt", MLP)
+    log = []
+    assert run(root, log=log.append, **FAST) == 1
+    assert ENCODERS["tiny_example"] is TinyEncoder and ENCODERS["tiny_ep"] is TinyEncoder
+    assert any(m.startswith("tiny: evaluated") for m in log) and any(m.startswith("tiny_ep: evaluated") for m in log)
+    (bad,) = [m for m in log if "tiny_bad" in m and "error" in m]
+    assert "field 'encoder_import': cannot import 'examples.nothere'" in bad
+
+
+def test_cli_dispatch_and_bad_options(tmp_path, capsys):
+    root = tmp_path / "lb"
+    add_straight(root)
+    assert cli_main(["leaderboard", "--root", str(root), "--episodes", "1", "--scenes", "eth"]) == 0
+    assert "Straight to goal" in (root / "README.md").read_text()
+    assert cli_main(["leaderboard", "--root", str(root), "--only", "nosuch"]) == 1
+    assert "unknown submission(s) nosuch" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as e:
+        cli_main(["leaderboard", "--root", str(root), "--scenes", "students001"])
+    assert e.value.code == 2  # the training scene is not an evaluation scene
+
+
+def test_diff_rows_names_sections():
+    a = "## A\n\n| m | x |\n|---|---|\n| one | 1 |\n| two | 2 |\n"
+    b = a.replace("| two | 2 |", "| two | 3 |")
+    (msg,) = diff_rows(a, b)
+    assert msg.startswith("[A] row 'two': differs")
+
+
+def test_parallel_jobs_give_the_same_table(tmp_path):
+    root = tmp_path / "lb"
+    add_straight(root)
+    add_toy(root)
+    assert run(root, log=lambda m: None, **FAST) == 0
+    log = []
+    assert run(root, check=True, jobs=2, log=log.append, **FAST) == 0, log  # 2 worker processes, same numbers
