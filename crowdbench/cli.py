@@ -157,6 +157,9 @@ def cmd_eval(overrides: list[str]) -> int:
 
     cfg = compose(overrides)
     if is_selfplay(cfg.env):  # every agent acts from the policy (a robot checkpoint too: the transfer test)
+        if str(cfg.policy) == "oracle":
+            raise UsageError("the oracle plans against replayed humans, not reacting agents: not available with "
+                             "env=selfplay; valid: orca, straight or a checkpoint path")
         policy = make_policy(str(cfg.policy), cfg)
         run_selfplay_eval(policy, cfg, output_dir(cfg, "eval-selfplay", str(cfg.policy)), overrides)
         return 0

@@ -247,3 +247,5 @@ def test_bad_selfplay_settings_are_one_line_errors(capsys, tmp_path):
     assert "unknown self-play scenario 'hexagon'; valid: circle, square" in capsys.readouterr().err
     assert main(["eval", "env=selfplay", "env.n_agents=64", "policy=straight", f"out={tmp_path}"]) == 2
     assert "raise env.circle_radius" in capsys.readouterr().err
+    assert main(["eval", "env=selfplay", "policy=oracle", f"out={tmp_path}"]) == 2
+    assert "not available with env=selfplay" in capsys.readouterr().err
