@@ -134,8 +134,35 @@ def check_protocol_fixed(cfg) -> None:
                              "evaluation always uses the protocol's value")
 
 
+def run_selfplay_eval(policy, cfg, out: Path, overrides: list[str]) -> dict:
+    """``env=selfplay``: every agent acts from ``policy`` on the seeded self-play set (docs/selfplay.md)."""
+    from crowdbench.envs.factory import selfplay_config
+    from crowdbench.eval_selfplay import evaluate_selfplay, format_table
+
+    e = cfg.env
+    try:
+        sim = selfplay_config(e, frame=policy.frame)
+        results = evaluate_selfplay(policy, sim, list(e.eval_scenarios),
+                                    None if e.eval_n_agents is None else list(e.eval_n_agents), int(e.eval_episodes),
+                                    int(e.eval_seed), out_dir=out, meta={"seed": cfg.seed, "overrides": overrides})
+    except ValueError as err:
+        raise UsageError(str(err)) from None
+    print(format_table(results))
+    print(f"results written to {out / 'results.json'}")
+    return results
+
+
 def cmd_eval(overrides: list[str]) -> int:
+    from crowdbench.envs.factory import is_selfplay
+
     cfg = compose(overrides)
+    if is_selfplay(cfg.env):  # every agent acts from the policy (a robot checkpoint too: the transfer test)
+        if str(cfg.policy) == "oracle":
+            raise UsageError("the oracle plans against replayed humans, not reacting agents: not available with "
+                             "env=selfplay; valid: orca, straight or a checkpoint path")
+        policy = make_policy(str(cfg.policy), cfg)
+        run_selfplay_eval(policy, cfg, output_dir(cfg, "eval-selfplay", str(cfg.policy)), overrides)
+        return 0
     eval_options(cfg)  # reject bad scenes before loading anything
     check_protocol_fixed(cfg)
     policy = make_policy(str(cfg.policy), cfg)
@@ -180,7 +207,9 @@ def cmd_run(overrides: list[str]) -> int:
         policy = policy_from_checkpoint(out / "checkpoint.pt")
     except ValueError as e:  # CheckpointError included: bad checkpoint, bad algo/replay/logger value
         raise UsageError(str(e)) from None
-    run_eval(policy, cfg, out, overrides)
+    from crowdbench.envs.factory import is_selfplay
+
+    (run_selfplay_eval if is_selfplay(cfg.env) else run_eval)(policy, cfg, out, overrides)
     return 0
 
 
@@ -199,7 +228,8 @@ def main(argv: list[str] | None = None) -> int:
               "[eval.save_episodes=true] [out=DIR]\n"
               "  crowdbench run algo=td3|ddpg|sac encoder=gatedgcn|gcn|mlp [train.total_frames=N] [seed=S] "
               "[out=DIR] [resume=true]\n"
-              "  crowdbench leaderboard [--check] [--force] [--only NAME] [--episodes N] [--scenes a,b] [--root DIR]")
+              "  crowdbench leaderboard [--check] [--force] [--only NAME] [--episodes N] [--scenes a,b] [--root DIR]\n"
+              "  crowdbench run|eval env=selfplay [env.n_agents=N] [env.scenario=circle|square|mixed] ...  (docs/selfplay.md)")
         return 0
     command, overrides = argv[0], argv[1:]
     try:

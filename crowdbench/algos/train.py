@@ -31,9 +31,10 @@ from crowdbench.algos.builders import (
     exploration_policy,
 )
 from crowdbench.algos.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from crowdbench.envs.core import COLLISION, SUCCESS, SimConfig
+from crowdbench.algos.multiagent import agent_transitions, finished_episodes
+from crowdbench.envs.core import COLLISION, SUCCESS
+from crowdbench.envs.factory import make_env
 from crowdbench.envs.policy import GROUP
-from crowdbench.envs.torchrl_env import CrowdEnv
 from crowdbench.models.heads import prepare_batch
 from crowdbench.models.perf import tune_allocator
 
@@ -105,13 +106,14 @@ def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool =
     tune_allocator()
     torch.manual_seed(cfg.seed)
     algo = a.name
-    env = CrowdEnv(cfg.env.scene, cfg.env.batch, SimConfig(**SimConfig.fields_of(cfg.env)), seed=cfg.seed,
-                   progress_reward=t.progress_reward)
+    # replay (one robot) or self-play (n agents, one shared-weight policy); progress shaping for training only
+    env = make_env(cfg, progress_reward=t.progress_reward)
     n_agents, v_max = env.n_agents, cfg.env.v_max
     actor = build_actor(algo, OmegaConf.to_container(cfg.encoder), v_max, squash=a.actor_squash)
     critic = build_critic(OmegaConf.to_container(cfg.encoder))
     prepared = algo != "sac"  # SAC's probabilistic actor reads the raw observation
-    loss = build_loss(algo, actor, critic, n_agents, v_max, a, prepared=prepared)
+    # the buffer holds one agent per transition (self-play flattens agents into the batch: algos/multiagent.py)
+    loss = build_loss(algo, actor, critic, 1, v_max, a, prepared=prepared)
     encoders = (actor.module.encoder, critic.module.encoder) if prepared else ()
     target_updater = SoftUpdate(loss, tau=a.tau)
     # fused Adam: one kernel for all parameters (~5x cheaper steps for many small tensors on CPU)
@@ -187,11 +189,9 @@ def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool =
     stats: dict = {}
     for batch in collector:
         frames += batch.numel()
-        done = batch["next", "done"].squeeze(-1)
-        outcome = batch["next", GROUP, "info", "outcome"][..., 0][done]
-        ret = batch["next", EPISODE_RETURN][..., 0, 0][done]
-        window = (window + list(zip(outcome.tolist(), ret.tolist(), strict=True)))[-t.stats_window:]
-        rb.extend(batch.select(*KEEP).reshape(-1))
+        outcome, ret = finished_episodes(batch, EPISODE_RETURN)  # per agent episode
+        window = (window + list(zip(outcome, ret, strict=True)))[-t.stats_window:]
+        rb.extend(agent_transitions(batch, KEEP))
 
         logs: dict[str, float] = {}
         if len(rb) >= a.warmup:

@@ -1,0 +1,124 @@
+"""Self-play evaluation: a fixed seeded episode set -> batched rollout of all agents -> metrics -> results JSON.
+
+Every agent of every episode acts from the same :class:`~crowdbench.envs.policy.Policy`
+(a learned actor, ORCA or straight-to-goal), called once per step for the ``[E, A]`` agents
+of the ``E`` episodes. Episodes come from :func:`crowdbench.envs.selfplay.episode_set` with
+``eval_seed``: the same configuration gives the same starts and goals for every policy.
+
+Metrics (docs/selfplay.md):
+
+- per agent (``E * A`` agent-episodes; Wilson 95% intervals for rates, normal for means):
+  success / collision / timeout rates, navigation time of arrived agents, dangers between
+  agents (steps ending with ``0 <= d_agent < danger_dist``), dangers with any body, minimum
+  agent-agent clearance at step ends over the episode, path length ratio of arrived agents;
+- per episode: "all agents arrived" rate, rate of episodes with at least one collision,
+  colliding agent pairs, agent-agent danger steps (summed over agents), episode time (until
+  the last agent finished) of episodes where all arrived.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict
+from pathlib import Path
+
+import torch
+
+from crowdbench.envs.core import COLLISION, OUTCOMES, SUCCESS
+from crowdbench.envs.policy import Policy, obs_tensordict
+from crowdbench.envs.selfplay import SelfPlayConfig, SelfPlaySim, episode_set
+from crowdbench.eval import mean_ci, rate_ci
+
+PROTOCOL = "selfplay-v1"
+
+
+@torch.no_grad()
+def rollout(policy: Policy, cfg: SelfPlayConfig, episodes: tuple) -> dict:
+    """Run all ``episodes`` (start, goal ``[E, A, 2]``, t0 ``[E]``) in one batch; traces ``[T, E, A]``."""
+    start, goal, t0 = episodes
+    sim = SelfPlaySim(start.shape[0], cfg)
+    everyone = torch.ones(sim.B, dtype=torch.bool)
+    sim.reset(everyone, start, goal, t0)
+    policy.reset(everyone)
+    xy, active, agent_clear, clear = [sim.pos.clone()], [], [], []
+    pairs = torch.zeros(sim.B, sim.A, sim.A, dtype=torch.bool)
+    for _ in range(cfg.time_limit):
+        action = policy.act(obs_tensordict(sim.observe(policy.frame), sim.B))
+        info = sim.step(action, frame=policy.frame)
+        xy.append(sim.pos.clone())
+        active.append(info.active)
+        agent_clear.append(info.extra["agent_clearance"])
+        clear.append(info.clearance)
+        pairs |= info.extra["pair_collision"]
+        if not (sim.outcome == 0).any():
+            break
+    return {"xy": torch.stack(xy), "active": torch.stack(active), "agent_clearance": torch.stack(agent_clear),
+            "clearance": torch.stack(clear), "outcome": sim.outcome.clone(), "pairs": pairs,
+            "start": sim.start.clone(), "goal": sim.goal.clone()}
+
+
+def metrics(tr: dict, cfg: SelfPlayConfig) -> dict:
+    act = tr["active"]  # [T, E, A]
+    steps = act.sum(0).double()  # [E, A] steps each agent moved
+    out = tr["outcome"]
+    ok = out == SUCCESS
+    danger = lambda c: ((c >= 0) & (c < cfg.danger_dist) & act).sum(0)
+    agent_danger = danger(tr["agent_clearance"])
+    path = ((tr["xy"][1:] - tr["xy"][:-1]).norm(dim=-1) * act).sum(0).double()
+    ratio = path / (tr["goal"] - tr["start"]).norm(dim=-1).double()
+    min_agent = torch.where(act, tr["agent_clearance"].double(), math.inf).amin(0).clamp_max(cfg.sensing_range)
+    n_agents = out.numel()
+    res = {f"{name}_rate": rate_ci(int((out == code).sum()), n_agents) for code, name in OUTCOMES.items()}
+    res |= {
+        "nav_time_s": mean_ci(steps[ok] * cfg.dt),
+        "path_length_ratio": mean_ci(ratio[ok]),
+        "agent_dangers_per_agent": mean_ci(agent_danger.double().flatten()),
+        "dangers_per_agent": mean_ci(danger(tr["clearance"]).double().flatten()),
+        "min_agent_clearance": mean_ci(min_agent.flatten()),
+    }
+    all_ok = ok.all(-1)
+    E = out.shape[0]
+    ep_time = steps.amax(-1) * cfg.dt
+    res["episode"] = {
+        "all_arrived_rate": rate_ci(int(all_ok.sum()), E),
+        "any_collision_rate": rate_ci(int((out == COLLISION).any(-1).sum()), E),
+        "collisions_per_episode": mean_ci((out == COLLISION).sum(-1).double()),
+        "colliding_pairs_per_episode": mean_ci(tr["pairs"].triu(1).sum((-1, -2)).double()),
+        "agent_dangers_per_episode": mean_ci(agent_danger.sum(-1).double()),
+        "episode_time_s": mean_ci(ep_time[all_ok]),
+    }
+    return res
+
+
+def evaluate_selfplay(policy: Policy, cfg: SelfPlayConfig, scenarios=("circle", "square"), n_agents=None,
+                      episodes: int = 100, seed: int = 0, out_dir: Path | None = None, meta: dict | None = None) -> dict:
+    """Evaluate ``policy`` on the seeded self-play set of every scenario x agent count; optionally write results."""
+    counts = [cfg.n_agents] if n_agents is None else [int(n) for n in n_agents]
+    results = {"protocol": PROTOCOL, "policy": policy.name, "meta": meta or {}, "episodes": episodes,
+               "seed": seed, "settings": {}}
+    for scenario in scenarios:
+        for n in counts:
+            c = SelfPlayConfig(**{**asdict(cfg), "scenario": scenario, "n_agents": n})
+            eps = episode_set(c, episodes, seed)
+            tr = rollout(policy, c, eps)
+            results["settings"][f"{scenario}_n{n}"] = metrics(tr, c)
+            results["sim_config"] = {k: v for k, v in asdict(c).items() if k not in ("scenario", "n_agents")}
+    if out_dir is not None:
+        out_dir = Path(out_dir)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "results.json").write_text(json.dumps(results, indent=1) + "\n")
+    return results
+
+
+def format_table(results: dict) -> str:
+    cols = [("success_rate", "success"), ("collision_rate", "collision"), ("timeout_rate", "timeout"),
+            ("nav_time_s", "nav time s"), ("agent_dangers_per_agent", "agent dangers")]
+    ep = [("all_arrived_rate", "all arrived"), ("episode_time_s", "episode s")]
+    head = f"{'setting':<12}" + "".join(f"{name:>15}" for _, name in cols + ep)
+    lines = [(f"policy: {results['policy']}  protocol: {results['protocol']} ({results['episodes']} episodes, "
+             f"seed {results['seed']}); rates per agent except 'all arrived'"), head]
+    for name, r in results["settings"].items():
+        vals = [r[k]["mean"] for k, _ in cols] + [r["episode"][k]["mean"] for k, _ in ep]
+        lines.append(f"{name:<12}" + "".join(f"{'n/a' if v is None else f'{v:.3f}':>15}" for v in vals))
+    return "\n".join(lines)
