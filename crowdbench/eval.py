@@ -57,7 +57,11 @@ def select_episodes(saved: dict, n: int | None) -> list[dict]:
 
 @torch.no_grad()
 def rollout(policy: Policy, scene: str, episodes: list[dict], cfg: SimConfig, recorder=None) -> dict:
-    """Run ``episodes`` of ``scene`` in one batch; return per-step traces ``[T, B]``."""
+    """Run ``episodes`` of ``scene`` in one batch; return per-step traces ``[T, B]``.
+
+    ``recorder(sim, td, action)`` (e.g. :class:`crowdbench.viz.record.SceneRecorder`), if given, is
+    called before every step; its optional ``after_step(sim, info)`` after it and ``close()`` at the end.
+    """
     sim = CrowdSim(load_scene(scene, cfg.dt, cfg.time_base), len(episodes), cfg)
     B = sim.B
     t0 = torch.tensor([e["t0"] for e in episodes])
@@ -73,6 +77,8 @@ def rollout(policy: Policy, scene: str, episodes: list[dict], cfg: SimConfig, re
         if recorder is not None:
             recorder(sim, td, action)
         info = sim.step(action, frame=policy.frame)
+        if recorder is not None and hasattr(recorder, "after_step"):
+            recorder.after_step(sim, info)
         xy.append(sim.pos[:, 0].clone())
         clear.append(info.clearance[:, 0])
         swept.append(info.swept_clearance[:, 0])
@@ -80,6 +86,8 @@ def rollout(policy: Policy, scene: str, episodes: list[dict], cfg: SimConfig, re
         active.append(info.active[:, 0])
         if not (sim.outcome == 0).any():
             break
+    if recorder is not None and hasattr(recorder, "close"):
+        recorder.close()
     return {
         "xy": torch.stack(xy), "clearance": torch.stack(clear), "swept": torch.stack(swept),
         "reward": torch.stack(reward), "active": torch.stack(active), "outcome": sim.outcome[:, 0].clone(),
