@@ -231,7 +231,8 @@ class SceneRecorder:
             outcome = int(info.outcome[b, 0])
             if outcome != RUNNING:
                 self._state(rec, sim, b, k)
-                rec.log("world/attention", rr.Clear(recursive=False))
+                if self.encoder is not None:
+                    rec.log("world/attention", rr.Clear(recursive=False))
                 rec.log("events", rr.TextLog(f"{OUTCOMES[outcome]} after {k} steps ({k * sim.cfg.dt:g} s)"))
                 self.done.add(b)
                 rec.flush()
@@ -244,13 +245,14 @@ class SceneRecorder:
 
 def read_recording(path: Path) -> dict[str, list[dict]]:
     """Rows of an ``.rrd`` file per entity path, read back with rerun's own reader (tests, checks):
-    ``{entity: [{"step": int | None, column: value, ...}, ...]}`` sorted by step (static rows: ``None``)."""
+    ``{entity: [{"step": int | None, "time": timedelta | None, column: value, ...}, ...]}`` sorted by
+    step (static rows: no step)."""
     from rerun.chunk import RrdReader
 
     out: dict[str, list[dict]] = {}
     for chunk in RrdReader(str(path)).stream().to_chunks():
         batch = chunk.to_record_batch()
-        cols = [c for c in batch.schema.names if c not in ("log_time", "time", "rerun.controls.RowId")]
+        cols = [c for c in batch.schema.names if c not in ("log_time", "rerun.controls.RowId")]
         data = {c: batch.column(c).to_pylist() for c in cols}
         for i in range(batch.num_rows):
             out.setdefault(chunk.entity_path.lstrip("/"), []).append({c: data[c][i] for c in cols})
