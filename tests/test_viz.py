@@ -77,6 +77,11 @@ def test_recording_readable_with_entities_and_steps(recorded):
             t = t0 + r["step"]
             expect = sorted(scene.ped_id[t][scene.valid[t]].tolist())
             assert sorted(r["ped_id"]) == expect == sorted(int(s) for s in r["Points2D:labels"])
+        for r in rec["scalars/min_clearance"]:  # surface gap to the nearest present human, capped at 5 m
+            t = t0 + r["step"]
+            h = scene.pos[t][scene.valid[t]].double()
+            gap = ((h - torch.tensor(row["robot_xy"][r["step"]]).double()).norm(dim=-1).min() - 0.3).item()
+            assert abs(r["Scalars:scalars"][0] - min(gap, 5.0)) < 1e-3
         goal = rec["world/goal"][0]["Points2D:positions"][0]
         assert np.allclose(goal, row["goal"], atol=1e-4)
 

@@ -64,8 +64,9 @@ def find_encoder(policy):
     return None
 
 
-def recorded_episodes(cfg, scenes: list[str]) -> dict[str, list[int]]:
-    """``{scene: [protocol episode ids]}`` to record, checked against the evaluated episodes.
+def recorded_episodes(cfg, scenes: list[str], lists: dict | None = None) -> dict[str, list[int]]:
+    """``{scene: [protocol episode ids]}`` to record, checked against the evaluated episodes
+    (``lists``, if given, receives each recorded scene's evaluated episode list).
 
     Raises ``ValueError`` (one line) for an id that is not evaluated or a scene not evaluated.
     """
@@ -81,7 +82,10 @@ def recorded_episodes(cfg, scenes: list[str]) -> dict[str, list[int]]:
     for scene in which:
         if scene not in scenes:
             raise ValueError(f"viz.scenes: scene {scene!r} is not evaluated (eval.scenes: {', '.join(scenes)})")
-        evaluated = [e["episode"] for e in select_episodes(load_episodes(scene), cfg.eval.episodes)]
+        eps = select_episodes(load_episodes(scene), cfg.eval.episodes)
+        if lists is not None:
+            lists[scene] = eps
+        evaluated = [e["episode"] for e in eps]
         missing = [i for i in ids if i not in evaluated]
         if missing:
             shown = ", ".join(map(str, evaluated[:8])) + (", ..." if len(evaluated) > 8 else "")
@@ -93,16 +97,15 @@ def recorded_episodes(cfg, scenes: list[str]) -> dict[str, list[int]]:
 
 def make_recorder_factory(policy, cfg, out_dir: Path, scenes: list[str]):
     """``recorder_factory(scene)`` for :func:`crowdbench.eval.evaluate` (``None`` for unrecorded scenes)."""
-    from crowdbench.eval import select_episodes
-
-    plan = recorded_episodes(cfg, scenes)
+    lists: dict[str, list[dict]] = {}
+    plan = recorded_episodes(cfg, scenes, lists)
     rec_dir = Path(out_dir) / cfg.viz.dir
     encoder = find_encoder(policy)
 
     def factory(scene: str):
         if scene not in plan:
             return None
-        eps = select_episodes(load_episodes(scene), cfg.eval.episodes)
+        eps = lists[scene]  # the list evaluate() runs (same protocol file, same selection)
         index = {e["episode"]: b for b, e in enumerate(eps)}
         chosen = {index[i]: eps[index[i]] for i in plan[scene]}
         return SceneRecorder(scene, chosen, rec_dir, encoder, policy_name=policy.name, trail_s=cfg.viz.trail_s)
@@ -169,21 +172,22 @@ class SceneRecorder:
         valid = scene.valid[t]
         hpos = scene.pos[t][valid].numpy()
         ids = scene.ped_id[t][valid].tolist()
-        seen = ((scene.pos[t][valid] - sim.pos[b, 0]).norm(dim=-1) <= cfg.sensing_range).numpy()
+        dist = (scene.pos[t][valid] - sim.pos[b, 0]).norm(dim=-1)
+        seen = (dist <= cfg.sensing_range).numpy()
         colours = np.where(seen[:, None], SEEN_COLOUR, UNSEEN_COLOUR).astype(np.uint8)
         rec.log("world/humans", rr.Points2D(hpos, radii=cfg.human_radius, colors=colours,
                                             labels=[str(i) for i in ids]), rr.AnyValues(ped_id=ids))
         t_lo = max(t - round(self.trail_s / cfg.dt), 0)
-        win_v = scene.valid[t_lo : t + 1][:, valid]  # [W, n] the same slots over the trail window
-        win_p = scene.pos[t_lo : t + 1][:, valid]
-        same = scene.ped_id[t_lo : t + 1][:, valid] == scene.ped_id[t][valid]  # a slot may be reused
-        strips = [win_p[(win_v & same)[:, j], j].numpy() for j in range(hpos.shape[0])]
-        rec.log("world/humans/trails", rr.LineStrips2D([s for s in strips if len(s) > 1], radii=0.015,
-                                                       colors=UNSEEN_COLOUR))
+        # the same slots over the trail window; a slot may have held another pedestrian before
+        keep = (scene.valid[t_lo : t + 1] & (scene.ped_id[t_lo : t + 1] == scene.ped_id[t]))[:, valid].numpy()
+        win_p = scene.pos[t_lo : t + 1][:, valid].numpy()
+        strips = [win_p[keep[:, j], j] for j in range(hpos.shape[0]) if keep[:, j].sum() > 1]
+        rec.log("world/humans/trails", rr.LineStrips2D(strips, radii=0.015, colors=UNSEEN_COLOUR))
         hvel = scene.vel[t][valid].numpy()
         rec.log("world/velocity/humans", rr.Arrows2D(origins=hpos, vectors=hvel, colors=colours, radii=0.015))
-        clear = sim.min_clearance()[b, 0].clamp_max(cfg.sensing_range)
-        rec.log("scalars/min_clearance", rr.Scalars(float(clear)))
+        # as sim.min_clearance() for this episode only (capped at the sensing range, as the metric)
+        clear = float(dist.min()) - sim.radius_sum if len(dist) else cfg.sensing_range
+        rec.log("scalars/min_clearance", rr.Scalars(min(clear, cfg.sensing_range)))
 
     def _attention(self, rec, sim, b: int) -> None:
         gates = self.encoder.last_gates if self.encoder is not None else None
