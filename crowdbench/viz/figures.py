@@ -171,6 +171,8 @@ def draw_episode(ax, row: dict, time_base: str = "true", mark_every_s: float = 2
 def episode_figure(row: dict, out: Path, time_base: str = "true", mark_every_s: float = 2.0) -> Path:
     fig, ax = plt.subplots(figsize=(7, 6))
     norm = draw_episode(ax, row, time_base, mark_every_s)
+    (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
+    fig.set_size_inches(8.0, min(max(7.0 * (y1 - y0) / (x1 - x0) + 1.2, 4.0), 10.0))  # follow the path's extent
     fig.colorbar(plt.cm.ScalarMappable(norm=norm, cmap=TIME_CMAP), ax=ax, label="time since start (s)", shrink=0.8)
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
@@ -188,14 +190,14 @@ def grid_figure(rows: list[dict], out: Path, time_base: str = "true", mark_every
         ax.axis("off")
     fig.suptitle(f"{rows[0]['scene']}: first {len(rows)} episodes (markers every {mark_every_s:g} s, "
                  "colour = time)", fontsize=10)
-    return _save(fig, out)
+    return _save(fig, out, dpi=90)
 
 
-def _save(fig, out: Path) -> Path:
+def _save(fig, out: Path, dpi: int = 120) -> Path:
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.tight_layout()
-    fig.savefig(out, dpi=120)
+    fig.savefig(out, dpi=dpi)
     plt.close(fig)
     return out
 
