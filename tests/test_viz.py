@@ -2,8 +2,11 @@
 with content, training curves with seed bands, recording off = no viz/rerun code, one-line errors."""
 
 import json
+import shutil
+import subprocess
 import sys
 from datetime import timedelta
+from pathlib import Path
 
 import matplotlib.image as mpimg
 import numpy as np
@@ -127,8 +130,14 @@ def test_cli_eval_records_and_run_dir_layout(tmp_path, capsys):
     assert rc == 0
     from crowdbench.viz.record import read_recording
 
-    rec = read_recording(tmp_path / "recordings" / "hotel_ep000.rrd")
+    path = tmp_path / "recordings" / "hotel_ep000.rrd"
+    rec = read_recording(path)
     assert "world/robot" in rec and "world/attention" not in rec
+    viewer = shutil.which("rerun", path=str(Path(sys.executable).parent)) or shutil.which("rerun")
+    if viewer:  # the viewer's own loader accepts the file (schema and archetypes checked)
+        proc = subprocess.run([viewer, "rrd", "verify", str(path)], check=False, capture_output=True, text=True,
+                              timeout=120)
+        assert proc.returncode == 0 and "verified without error" in proc.stdout + proc.stderr
 
 
 def test_recording_off_runs_no_viz_code(tmp_path, monkeypatch):
