@@ -224,6 +224,9 @@ def test_plot_overlays_runs_with_seed_band(tmp_path):
      "viz.episodes: episode 7 is not evaluated on hotel"),
     (["eval", "policy=straight", "eval.scenes=[hotel]", "viz.record=true", "viz.scenes=[eth]"],
      "viz.scenes: scene 'eth' is not evaluated"),
+    # a training run checks viz.* before it trains (not after 30 minutes)
+    (["run", "eval.scenes=[hotel]", "eval.episodes=2", "viz.record=true", "viz.episodes=[0,7]"],
+     "viz.episodes: episode 7 is not evaluated on hotel"),
 ])
 def test_bad_input_one_line_error(args, message, tmp_path, capsys):
     (tmp_path / "ev").mkdir()
@@ -231,7 +234,7 @@ def test_bad_input_one_line_error(args, message, tmp_path, capsys):
         "scene": "hotel", "episode": 0, "start_time_s": 0.0, "dt": 0.25, "start": [0, 0], "goal": [1, 1],
         "robot_xy": [[0, 0], [0.2, 0.2]], "outcome": "timeout"}) + "\n")
     args = [a.replace("{tmp}", str(tmp_path)) for a in args]
-    if args[0] == "eval":
+    if args[0] in ("eval", "run"):
         args.append(f"out={tmp_path / 'out'}")
     assert main(args) == 2
     err = capsys.readouterr().err
