@@ -10,7 +10,7 @@ from pathlib import Path
 from crowdbench.envs.core import SimConfig
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
-COMMANDS = ("eval", "run", "leaderboard")
+COMMANDS = ("eval", "run", "leaderboard", "viz", "plot")
 BASELINES = ("orca", "straight", "oracle")
 
 
@@ -116,11 +116,37 @@ def run_eval(policy, cfg, out: Path, overrides: list[str]) -> dict:
     scenes, episodes = eval_options(cfg)
     sim = SimConfig.fields_of(cfg.env)
     sim["frame"] = policy.frame
+    recorders = recorder_factory(policy, cfg, out, scenes)
     results = evaluate(policy, scenes, episodes, out_dir=out, save_episodes=bool(cfg.eval.save_episodes),
-                       sim_overrides=sim, meta={"seed": cfg.seed, "overrides": overrides})
+                       sim_overrides=sim, meta={"seed": cfg.seed, "overrides": overrides},
+                       recorder_factory=recorders)
     print(format_table(results))
     print(f"results written to {out / 'results.json'}")
     return results
+
+
+def recorder_factory(policy, cfg, out: Path, scenes: list[str]):
+    """``viz.record=true``: rerun recordings of ``viz.episodes`` (crowdbench/viz/record.py); else ``None``
+    (the viz package, and rerun, are then never imported)."""
+    if not cfg.viz.record:
+        return None
+    from crowdbench.viz.record import make_recorder_factory
+
+    try:
+        return make_recorder_factory(policy, cfg, out, scenes)
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+
+
+def check_viz(cfg) -> None:
+    """Reject bad ``viz.*`` values before anything runs (a training run must not fail at its end)."""
+    if cfg.viz.record:
+        from crowdbench.viz.record import recorded_episodes
+
+        try:
+            recorded_episodes(cfg, eval_options(cfg)[0])
+        except ValueError as e:
+            raise UsageError(str(e)) from None
 
 
 def check_protocol_fixed(cfg) -> None:
@@ -165,6 +191,7 @@ def cmd_eval(overrides: list[str]) -> int:
         return 0
     eval_options(cfg)  # reject bad scenes before loading anything
     check_protocol_fixed(cfg)
+    check_viz(cfg)
     policy = make_policy(str(cfg.policy), cfg)
     run_eval(policy, cfg, output_dir(cfg, "eval", str(cfg.policy)), overrides)
     return 0
@@ -194,6 +221,7 @@ def cmd_run(overrides: list[str]) -> int:
 
     cfg = compose(overrides)
     eval_options(cfg)
+    check_viz(cfg)
     if cfg.resume and not cfg.out:
         raise UsageError("resume=true needs out=<run directory> (the run to continue)")
     out = output_dir(cfg, "run", f"{cfg.algo.name}-{cfg.encoder.name}")
@@ -223,18 +251,28 @@ def cmd_leaderboard(args: list[str]) -> int:
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help"):
-        print("usage: crowdbench {eval,run,leaderboard} [key=value ...]\n"
+        print("usage: crowdbench {eval,run,leaderboard,viz,plot} [key=value ...]\n"
               "  crowdbench eval policy=orca|straight|oracle|<checkpoint.pt> [eval.scenes=[eth,hotel]] [eval.episodes=N] "
               "[eval.save_episodes=true] [out=DIR]\n"
               "  crowdbench run algo=td3|ddpg|sac encoder=gatedgcn|gcn|mlp [train.total_frames=N] [seed=S] "
               "[out=DIR] [resume=true]\n"
+              "  crowdbench eval|run ... viz.record=true [viz.episodes=[0,5]] [viz.scenes=[students003]]\n"
+              "  crowdbench run|eval env=selfplay [env.n_agents=N] [env.scenario=circle|square|mixed] ...  (docs/selfplay.md)\n"
               "  crowdbench leaderboard [--check] [--force] [--only NAME] [--episodes N] [--scenes a,b] [--root DIR]\n"
-              "  crowdbench run|eval env=selfplay [env.n_agents=N] [env.scenario=circle|square|mixed] ...  (docs/selfplay.md)")
+              "  crowdbench viz <episodes.jsonl|results dir> [--episode N] [--scene S] [--grid K] [--out FILE.png]\n"
+              "  crowdbench plot <run dir> [<run dir> ...] [--out FILE.png] [--smooth N]")
         return 0
     command, overrides = argv[0], argv[1:]
     try:
         if command not in COMMANDS:
             raise UsageError(f"unknown command {command!r}; valid commands: {', '.join(COMMANDS)}")
+        if command in ("viz", "plot"):
+            from crowdbench.viz.figures import main as viz_main
+
+            try:
+                return viz_main(command, overrides)
+            except ValueError as e:
+                raise UsageError(str(e)) from None
         return {"eval": cmd_eval, "run": cmd_run, "leaderboard": cmd_leaderboard}[command](overrides)
     except UsageError as e:
         print(f"crowdbench: error: {e}", file=sys.stderr)

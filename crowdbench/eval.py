@@ -57,7 +57,11 @@ def select_episodes(saved: dict, n: int | None) -> list[dict]:
 
 @torch.no_grad()
 def rollout(policy: Policy, scene: str, episodes: list[dict], cfg: SimConfig, recorder=None) -> dict:
-    """Run ``episodes`` of ``scene`` in one batch; return per-step traces ``[T, B]``."""
+    """Run ``episodes`` of ``scene`` in one batch; return per-step traces ``[T, B]``.
+
+    ``recorder(sim, td, action)`` (e.g. :class:`crowdbench.viz.record.SceneRecorder`), if given, is
+    called before every step; its optional ``after_step(sim, info)`` after it and ``close()`` at the end.
+    """
     sim = CrowdSim(load_scene(scene, cfg.dt, cfg.time_base), len(episodes), cfg)
     B = sim.B
     t0 = torch.tensor([e["t0"] for e in episodes])
@@ -65,7 +69,7 @@ def rollout(policy: Policy, scene: str, episodes: list[dict], cfg: SimConfig, re
     everyone = torch.ones(B, dtype=torch.bool)
     sim.reset(everyone, t0, angle)
     policy.reset(everyone)
-    if policy.privileged:  # the oracle: plans from the scene's future (docs/protocol.md, "Oracle")
+    if getattr(policy, "privileged", False):  # the oracle: plans from the scene's future (docs/protocol.md, "Oracle")
         policy.plan(sim)
     xy, clear, swept, reward, active = [sim.pos[:, 0].clone()], [], [], [], []
     clear0 = sim.min_clearance()[:, 0]
@@ -75,6 +79,8 @@ def rollout(policy: Policy, scene: str, episodes: list[dict], cfg: SimConfig, re
         if recorder is not None:
             recorder(sim, td, action)
         info = sim.step(action, frame=policy.frame)
+        if recorder is not None and hasattr(recorder, "after_step"):
+            recorder.after_step(sim, info)
         xy.append(sim.pos[:, 0].clone())
         clear.append(info.clearance[:, 0])
         swept.append(info.swept_clearance[:, 0])
@@ -82,6 +88,8 @@ def rollout(policy: Policy, scene: str, episodes: list[dict], cfg: SimConfig, re
         active.append(info.active[:, 0])
         if not (sim.outcome == 0).any():
             break
+    if recorder is not None and hasattr(recorder, "close"):
+        recorder.close()
     return {
         "xy": torch.stack(xy), "clearance": torch.stack(clear), "swept": torch.stack(swept),
         "reward": torch.stack(reward), "active": torch.stack(active), "outcome": sim.outcome[:, 0].clone(),
@@ -166,7 +174,7 @@ def evaluate(policy: Policy, scenes=PAPER_SCENES, episodes: int | None = None, o
     """Evaluate ``policy`` on the saved protocol episode lists; optionally write results files."""
     scenes = [check_scene(s) for s in scenes]
     results = {"protocol": PROTOCOL_VERSION, "policy": policy.name, "meta": meta or {}, "scenes": {}}
-    if policy.privileged:
+    if getattr(policy, "privileged", False):
         results["privileged"] = True
     rows = []
     for scene in scenes:
