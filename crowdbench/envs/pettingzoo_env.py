@@ -42,6 +42,7 @@ from pettingzoo import ParallelEnv
 from crowdbench.data.scenes import load_scene
 from crowdbench.envs.core import OUTCOMES, CrowdSim, SimConfig
 from crowdbench.envs.protocol import TRAIN_SCENE, TrainSampler
+from crowdbench.envs.specs import gym_spaces
 
 
 class CrowdParallelEnv(ParallelEnv):
@@ -65,20 +66,7 @@ class CrowdParallelEnv(ParallelEnv):
         self._mask = torch.ones(1, dtype=torch.bool)
         self.episode: dict = {}  # t0 and angle of the current episode
 
-        m, v = self.sim.M, self.cfg.v_max
-        inf = np.float32(np.inf)
-
-        def obs_space() -> spaces.Dict:  # one independent object per agent (seeded separately)
-            return spaces.Dict(
-                {
-                    "robot": spaces.Box(-inf, inf, (6,), np.float32),
-                    "humans": spaces.Box(-inf, inf, (m, 4), np.float32),
-                    "humans_mask": spaces.Box(0.0, 1.0, (m,), np.float32),
-                }
-            )
-
-        self.observation_spaces = {a: obs_space() for a in self.possible_agents}
-        self.action_spaces = {a: spaces.Box(-v, v, (2,), np.float32) for a in self.possible_agents}
+        self.observation_spaces, self.action_spaces = gym_spaces(self.possible_agents, self.sim.M, self.cfg.v_max)
 
     # ------------------------------------------------------------------ spaces
     # the dicts hold one space object per agent, so every call returns the same object

@@ -23,12 +23,13 @@ import torch
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 from tensordict import TensorDict, TensorDictBase
-from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.data import Categorical, Unbounded
 from torchrl.envs import EnvBase
 
 from crowdbench.envs.core import COLLISION, OUTCOMES, RUNNING, SUCCESS
 from crowdbench.envs.policy import GROUP
 from crowdbench.envs.selfplay import EpisodeSampler, SelfPlayConfig, SelfPlaySim
+from crowdbench.envs.specs import gym_spaces, torchrl_specs
 
 
 class SelfPlayEnv(EnvBase):
@@ -52,27 +53,11 @@ class SelfPlayEnv(EnvBase):
         return self.sim.A
 
     def _make_specs(self) -> None:
-        B, A, M, v = self.batch_size[0], self.sim.A, self.sim.M, self.cfg.v_max
-        agent_obs = Composite(
-            observation=Composite(
-                robot=Unbounded((B, A, 6)),
-                humans=Unbounded((B, A, M, 4)),
-                humans_mask=Categorical(2, (B, A, M), dtype=torch.bool),
-                shape=(B, A),
-            ),
-            info=Composite(outcome=Categorical(4, (B, A), dtype=torch.long), clearance=Unbounded((B, A)),
-                           agent_clearance=Unbounded((B, A)), shape=(B, A)),
-            shape=(B, A),
-        )
-        self.observation_spec = Composite({GROUP: agent_obs}, shape=(B,))
-        self.action_spec = Composite({GROUP: Composite(action=Bounded(-v, v, (B, A, 2)), shape=(B, A))}, shape=(B,))
-        self.reward_spec = Composite({GROUP: Composite(reward=Unbounded((B, A, 1)), shape=(B, A))}, shape=(B,))
-        flag = lambda *s: Categorical(2, s, dtype=torch.bool)
-        self.done_spec = Composite(
-            done=flag(B, 1), terminated=flag(B, 1), truncated=flag(B, 1),
-            **{GROUP: Composite(done=flag(B, A, 1), terminated=flag(B, A, 1), truncated=flag(B, A, 1), shape=(B, A))},
-            shape=(B,),
-        )
+        B, A = self.batch_size[0], self.sim.A
+        info = {"outcome": Categorical(4, (B, A), dtype=torch.long), "clearance": Unbounded((B, A)),
+                "agent_clearance": Unbounded((B, A))}
+        for name, spec in torchrl_specs(B, A, self.sim.M, self.cfg.v_max, info).items():
+            setattr(self, name, spec)
 
     def _output(self, clearance: torch.Tensor, agent_clearance: torch.Tensor) -> TensorDict:
         B, A = self.batch_size[0], self.sim.A
@@ -139,15 +124,7 @@ class SelfPlayParallelEnv(ParallelEnv):
         self.agents: list[str] = []
         self._index = {a: i for i, a in enumerate(self.possible_agents)}
         self._sampler: EpisodeSampler | None = None
-        m, v, inf = self.sim.M, self.cfg.v_max, np.float32(np.inf)
-
-        def obs_space() -> spaces.Dict:
-            return spaces.Dict({"robot": spaces.Box(-inf, inf, (6,), np.float32),
-                                "humans": spaces.Box(-inf, inf, (m, 4), np.float32),
-                                "humans_mask": spaces.Box(0.0, 1.0, (m,), np.float32)})
-
-        self.observation_spaces = {a: obs_space() for a in self.possible_agents}
-        self.action_spaces = {a: spaces.Box(-v, v, (2,), np.float32) for a in self.possible_agents}
+        self.observation_spaces, self.action_spaces = gym_spaces(self.possible_agents, self.sim.M, self.cfg.v_max)
 
     def observation_space(self, agent: str) -> spaces.Dict:
         return self.observation_spaces[agent]

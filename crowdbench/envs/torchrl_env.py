@@ -10,13 +10,14 @@ from __future__ import annotations
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.data import Categorical, Unbounded
 from torchrl.envs import EnvBase
 
 from crowdbench.data.scenes import load_scene
 from crowdbench.envs.core import CrowdSim, SimConfig
 from crowdbench.envs.policy import GROUP
 from crowdbench.envs.protocol import TrainSampler
+from crowdbench.envs.specs import torchrl_specs
 
 
 class CrowdEnv(EnvBase):
@@ -55,30 +56,10 @@ class CrowdEnv(EnvBase):
         return self.sim.A
 
     def _make_specs(self) -> None:
-        B, A, M, v = self.batch_size[0], self.sim.A, self.sim.M, self.cfg.v_max
-        agent_obs = Composite(
-            observation=Composite(
-                robot=Unbounded((B, A, 6)),
-                humans=Unbounded((B, A, M, 4)),
-                humans_mask=Categorical(2, (B, A, M), dtype=torch.bool),
-                shape=(B, A),
-            ),
-            info=Composite(
-                outcome=Categorical(4, (B, A), dtype=torch.long),
-                clearance=Unbounded((B, A)),
-                shape=(B, A),
-            ),
-            shape=(B, A),
-        )
-        self.observation_spec = Composite({GROUP: agent_obs}, shape=(B,))
-        self.action_spec = Composite({GROUP: Composite(action=Bounded(-v, v, (B, A, 2)), shape=(B, A))}, shape=(B,))
-        self.reward_spec = Composite({GROUP: Composite(reward=Unbounded((B, A, 1)), shape=(B, A))}, shape=(B,))
-        flag = lambda *s: Categorical(2, s, dtype=torch.bool)
-        self.done_spec = Composite(
-            done=flag(B, 1), terminated=flag(B, 1), truncated=flag(B, 1),
-            **{GROUP: Composite(done=flag(B, A, 1), terminated=flag(B, A, 1), truncated=flag(B, A, 1), shape=(B, A))},
-            shape=(B,),
-        )
+        info = {"outcome": Categorical(4, (self.batch_size[0], self.sim.A), dtype=torch.long),
+                "clearance": Unbounded((self.batch_size[0], self.sim.A))}
+        for name, spec in torchrl_specs(self.batch_size[0], self.sim.A, self.sim.M, self.cfg.v_max, info).items():
+            setattr(self, name, spec)
 
     # ------------------------------------------------------------------ episodes
     def _draw(self, n: int) -> tuple[torch.Tensor, torch.Tensor]:
