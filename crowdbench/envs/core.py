@@ -93,6 +93,33 @@ def to_world(vec: torch.Tensor, heading: torch.Tensor) -> torch.Tensor:
     return torch.stack((c * x - s * y, s * x + c * y), -1)
 
 
+def clip_speed(action: torch.Tensor, v_max: float) -> torch.Tensor:
+    """Each component clamped to ``[-v_max, v_max]``, then the speed clipped to ``v_max`` (SPEC section 3)."""
+    a = action.clamp(-v_max, v_max)
+    return a * (v_max / a.norm(dim=-1, keepdim=True).clamp_min(v_max))
+
+
+def heading_to(goal: torch.Tensor, pos: torch.Tensor, heading: torch.Tensor) -> torch.Tensor:
+    """Unit vector from ``pos`` to ``goal``; at the goal the direction is undefined: keep ``heading``."""
+    to_goal = goal - pos
+    dist = to_goal.norm(dim=-1, keepdim=True)
+    return torch.where(dist > 1e-6, to_goal / dist.clamp_min(1e-6), heading)
+
+
+def step_reward(cfg, end: torch.Tensor, success: torch.Tensor, failure: torch.Tensor,
+                active: torch.Tensor) -> torch.Tensor:
+    """The paper's reward (Eq. 1-2) of one step: danger term on the end clearance ``end``, ``r_reach``
+    on success, ``r_fail`` on collision or timeout (``failure``); zero for inactive agents."""
+    danger = -0.1 + end.clamp_min(0.0) / 2
+    if cfg.danger_dt_scaling:
+        danger = danger * cfg.dt
+    return (torch.where(end < cfg.danger_dist, danger, 0.0) + cfg.r_reach * success + cfg.r_fail * failure) * active
+
+
+def outcome_of(success: torch.Tensor, collision: torch.Tensor, timeout: torch.Tensor) -> torch.Tensor:
+    return torch.where(success, SUCCESS, torch.where(collision, COLLISION, torch.where(timeout, TIMEOUT, RUNNING)))
+
+
 def free_start(scene: Scene, t0: torch.Tensor, start: torch.Tensor, margin: float, radius_sum: float) -> torch.Tensor:
     """``[n]`` bool: no human present at grid index ``t0`` is within ``margin`` clearance of ``start`` ``[n, 2]``.
 
@@ -160,10 +187,7 @@ class CrowdSim:
         self._update_heading()
 
     def _update_heading(self) -> None:
-        to_goal = self.goal - self.pos
-        dist = to_goal.norm(dim=-1, keepdim=True)
-        # at the goal the direction is undefined: keep the previous frame
-        self.heading = torch.where(dist > 1e-6, to_goal / dist.clamp_min(1e-6), self.heading)
+        self.heading = heading_to(self.goal, self.pos, self.heading)
 
     # ------------------------------------------------------------------ humans
     def humans(self, t: torch.Tensor | None = None):
@@ -183,10 +207,7 @@ class CrowdSim:
 
     # ------------------------------------------------------------------ step
     def clip_action(self, action: torch.Tensor) -> torch.Tensor:
-        v_max = self.cfg.v_max
-        a = action.clamp(-v_max, v_max)
-        speed = a.norm(dim=-1, keepdim=True)
-        return a * (v_max / speed.clamp_min(v_max))
+        return clip_speed(action, self.cfg.v_max)
 
     def step(self, action: torch.Tensor, frame: str | None = None) -> StepInfo:
         """Advance every running environment by one step.
@@ -221,16 +242,8 @@ class CrowdSim:
         success = active & ~collision & ((self.goal - new_pos).norm(dim=-1) < cfg.robot_radius)
         timeout = active & ~collision & ~success & (steps >= cfg.time_limit).unsqueeze(-1)
 
-        danger = -0.1 + end.clamp_min(0.0) / 2
-        if cfg.danger_dt_scaling:
-            danger = danger * cfg.dt
-        reward = (
-            torch.where(end < cfg.danger_dist, danger, 0.0)
-            + cfg.r_reach * success
-            + cfg.r_fail * (collision | timeout)
-        ) * active
-
-        outcome = torch.where(success, SUCCESS, torch.where(collision, COLLISION, torch.where(timeout, TIMEOUT, 0)))
+        reward = step_reward(cfg, end, success, collision | timeout, active)
+        outcome = outcome_of(success, collision, timeout)
         self.outcome = torch.where(active, outcome, self.outcome)
         self.pos, self.vel, self.t, self.steps = new_pos, vel, t1, steps
         self._update_heading()

@@ -40,15 +40,17 @@ import torch
 from crowdbench.data.scenes import Scene, load_scene
 from crowdbench.envs.core import (
     _FAR,
-    COLLISION,
     RUNNING,
     START_CLEARANCE,
-    SUCCESS,
     TIMEOUT,
     SimConfig,
     StepInfo,
+    clip_speed,
     free_start,
+    heading_to,
+    outcome_of,
     segment_min_distance,
+    step_reward,
     to_local,
     to_world,
 )
@@ -213,9 +215,7 @@ class SelfPlaySim:
         self._update_heading()
 
     def _update_heading(self) -> None:
-        to_goal = self.goal - self.pos
-        dist = to_goal.norm(dim=-1, keepdim=True)
-        self.heading = torch.where(dist > 1e-6, to_goal / dist.clamp_min(1e-6), self.heading)
+        self.heading = heading_to(self.goal, self.pos, self.heading)
 
     # ------------------------------------------------------------------ bodies
     def present(self) -> torch.Tensor:
@@ -249,9 +249,7 @@ class SelfPlaySim:
         return torch.cat((self.agent_clearance(), gap), -1).amin(-1)
 
     def clip_action(self, action: torch.Tensor) -> torch.Tensor:
-        v_max = self.cfg.v_max
-        a = action.clamp(-v_max, v_max)
-        return a * (v_max / a.norm(dim=-1, keepdim=True).clamp_min(v_max))
+        return clip_speed(action, self.cfg.v_max)
 
     # ------------------------------------------------------------------ step
     def step(self, action: torch.Tensor, frame: str | None = None) -> StepInfo:
@@ -301,13 +299,8 @@ class SelfPlaySim:
         success = active & ~collision & ((self.goal - new_pos).norm(dim=-1) < cfg.robot_radius)
         timeout = active & ~collision & ~success & (steps >= cfg.time_limit).unsqueeze(-1)
 
-        danger = -0.1 + end.clamp_min(0.0) / 2
-        if cfg.danger_dt_scaling:
-            danger = danger * cfg.dt
-        reward = (torch.where(end < cfg.danger_dist, danger, 0.0) + cfg.r_reach * success
-                  + cfg.r_fail * (collision | timeout)) * active
-
-        outcome = torch.where(success, SUCCESS, torch.where(collision, COLLISION, torch.where(timeout, TIMEOUT, 0)))
+        reward = step_reward(cfg, end, success, collision | timeout, active)
+        outcome = outcome_of(success, collision, timeout)
         self.outcome = torch.where(active, outcome, self.outcome)
         self.pos, self.vel, self.t, self.steps = new_pos, vel, t1, steps
         self._update_heading()
