@@ -95,3 +95,48 @@ def test_corrupted_checkpoint_and_bad_names(tmp_path, capsys):
     assert "unknown algo 'ppo'; valid choices: ddpg, sac, td3" in capsys.readouterr().err
     assert main(["run", "resume=true"]) == 2
     assert "resume=true needs out=" in capsys.readouterr().err
+
+
+def test_n_step_returns_by_hand():
+    """Two episodes in one [1, 6] batch (the first ends at step 2), n = 3, gamma = 0.5."""
+    from tensordict import TensorDict
+
+    from crowdbench.algos.builders import build_actor, build_critic, build_loss
+    from crowdbench.algos.nstep import STEPS, n_step
+
+    T = 6
+    reward = torch.tensor([1.0, 2.0, 4.0, 8.0, 16.0, 32.0]).view(1, T, 1, 1)
+    done = torch.tensor([0, 0, 1, 0, 0, 0], dtype=torch.bool).view(1, T, 1, 1)
+    obs_id = torch.arange(1, T + 1, dtype=torch.float).view(1, T, 1, 1)  # next observation of step t is t + 1
+    batch = TensorDict({"agents": {"x": obs_id - 1}, "next": {"agents": {
+        "x": obs_id, "reward": reward, "done": done, "terminated": done.clone()}}}, batch_size=[1, T])
+    out = n_step(batch, 3, 0.5)
+    # step 0: 1 + 0.5*2 + 0.25*4, ends its episode at step 2 -> terminal next obs 3, no bootstrap
+    assert out["next", "agents", "reward"].flatten().tolist() == [3.0, 4.0, 4.0, 8 + 8 + 8, 16 + 16, 32]
+    assert out["next", "agents", "x"].flatten().tolist() == [3, 3, 3, 6, 6, 6]
+    assert out["next", "agents", "terminated"].flatten().tolist() == [True, True, True, False, False, False]
+    assert out[STEPS].flatten().tolist() == [3, 2, 1, 3, 2, 1]  # the batch ends after step 5: shorter tails
+    assert torch.equal(out["agents", "x"], batch["agents", "x"])  # the start state is unchanged
+    # TorchRL's TD(0) estimator then bootstraps with gamma^m: r + 0.99^m * V(s_{t+m}) on non-terminal rows
+    enc = {"name": "mlp", "dim": 8, "hidden": [8]}
+    loss = build_loss("td3", build_actor("td3", enc, 1.0), build_critic(enc), 1, 1.0,
+                      {"policy_noise": 0.2, "noise_clip": 0.5, "loss_function": "l2", "gamma": 0.99})
+    td = TensorDict({"next": {"agents": {"reward": torch.ones(3, 1, 1), "done": torch.zeros(3, 1, 1, dtype=torch.bool),
+                                         "terminated": torch.tensor([False, False, True]).view(3, 1, 1),
+                                         "state_action_value": torch.full((3, 1, 1), 2.0)}},
+                     "agents": {"steps_to_next_obs": torch.tensor([1, 3, 3]).view(3, 1, 1)}}, batch_size=[3])
+    target = loss.value_estimator.value_estimate(td).flatten()
+    assert target.tolist() == pytest.approx([1 + 0.99 * 2, 1 + 0.99**3 * 2, 1.0])
+    with pytest.raises(ValueError, match="n_steps"):
+        n_step(batch, 0, 0.5)
+
+
+@pytest.mark.parametrize("env", ["replay", "selfplay"])
+def test_n_step_and_ou_exploration_train(env, tmp_path):
+    extra = ["env=selfplay", "env.n_agents=4"] if env == "selfplay" else []
+    cfg = compose(["algo.n_steps=4", "algo.exploration=ou", "algo.exploration_sigma=0.3", "train.total_frames=256",
+                   *TINY, *SMALL_ENCODER["mlp"], "encoder=mlp", *extra])
+    stats = train(cfg, tmp_path, progress=False)
+    assert stats["updates"] > 0 and all(torch.isfinite(torch.tensor(v)) for _, v in read_log(tmp_path, "loss_critic"))
+    with pytest.raises(ValueError, match="algo.exploration"):
+        train(compose([*TINY, "algo.exploration=pink"]), tmp_path / "bad", progress=False)

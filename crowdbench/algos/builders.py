@@ -11,9 +11,10 @@ import torch
 from tensordict.nn import NormalParamExtractor, TensorDictModule, TensorDictSequential
 from torch import nn
 from torchrl.data import Bounded
-from torchrl.modules import AdditiveGaussianModule, ProbabilisticActor, TanhNormal
+from torchrl.modules import AdditiveGaussianModule, OrnsteinUhlenbeckProcessModule, ProbabilisticActor, TanhNormal
 from torchrl.objectives import DDPGLoss, SACLoss, TD3Loss, ValueEstimators
 
+from crowdbench.algos.nstep import STEPS
 from crowdbench.envs.policy import ACTION, GROUP
 from crowdbench.models import make_encoder
 from crowdbench.models.graph import unpack_obs
@@ -97,16 +98,34 @@ def build_loss(algo: str, actor, critic, n_agents: int, v_max: float, a: dict, p
         keys["log_prob"] = LOG_PROB
     loss.set_keys(**keys)
     loss.make_value_estimator(ValueEstimators.TD0, gamma=a["gamma"])
+    # n-step transitions (algos/nstep.py) carry their length m: the bootstrap is discounted by gamma^m
+    loss.value_estimator.set_keys(steps_to_next_obs=STEPS)
     return loss
 
 
-def exploration_policy(algo: str, actor, n_agents: int, v_max: float, sigma: float):
-    """Algorithm 1, line 7: ``a = pi(G) + N(0, sigma)`` for TD3/DDPG; SAC samples its own policy."""
+def exploration_policy(algo: str, actor, n_agents: int, v_max: float, sigma: float, noise: str = "gaussian",
+                       theta: float = 0.125):
+    """Algorithm 1, line 7: ``a = pi(G) + N(0, sigma)`` for TD3/DDPG; SAC samples its own policy.
+
+    ``noise="ou"``: temporally correlated noise instead, TorchRL's Ornstein-Uhlenbeck module in
+    steps (``x' = (1 - theta) x + s * N(0, 1)``, reset where the env's ``is_init`` is set, which
+    needs an ``InitTracker``); ``s`` is chosen so that the stationary std is ``sigma``, the same
+    scale as the Gaussian. Why: a lateral step of 0.25 m does not avoid anyone, a deviation held
+    for ~1/theta steps (2 s at theta = 0.125) does."""
     if algo == "sac":
         return actor
-    noise = AdditiveGaussianModule(spec=leaf_action_spec(n_agents, v_max), sigma_init=sigma, sigma_end=sigma,
-                                   action_key=ACTION, safe=True)
-    return TensorDictSequential(actor, noise)
+    spec = leaf_action_spec(n_agents, v_max)
+    if noise == "gaussian":
+        module = AdditiveGaussianModule(spec=spec, sigma_init=sigma, sigma_end=sigma, action_key=ACTION, safe=True)
+    elif noise == "ou":
+        if not 0 < theta <= 1:
+            raise ValueError(f"algo.ou_theta must be in (0, 1], got {theta}")
+        module = OrnsteinUhlenbeckProcessModule(spec, eps_init=1.0, eps_end=1.0, theta=theta,
+                                                sigma=sigma * (2 * theta - theta**2) ** 0.5, dt=1.0,
+                                                action_key=ACTION, is_init_key="is_init", safe=True)
+    else:
+        raise ValueError(f"unknown algo.exploration {noise!r}; valid: gaussian, ou")
+    return TensorDictSequential(actor, module)
 
 
 def actor_parameters(loss) -> list[torch.Tensor]:

@@ -17,7 +17,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictPrioritizedReplayBuffer, TensorDictReplayBuffer
-from torchrl.envs import RewardSum, TransformedEnv
+from torchrl.envs import Compose, InitTracker, RewardSum, TransformedEnv
 from torchrl.objectives import SoftUpdate
 from torchrl.record.loggers.csv import CSVLogger
 from tqdm import tqdm
@@ -32,6 +32,7 @@ from crowdbench.algos.builders import (
 )
 from crowdbench.algos.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from crowdbench.algos.multiagent import agent_transitions, finished_episodes
+from crowdbench.algos.nstep import STEPS, n_step
 from crowdbench.envs.core import COLLISION, SUCCESS
 from crowdbench.envs.factory import make_env
 from crowdbench.envs.policy import GROUP
@@ -143,9 +144,10 @@ def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool =
     if remaining <= 0:
         return {"frames": frames, "updates": updates}
     # the replay buffer is not checkpointed (hundreds of MB): a resumed run refills it with warm-up frames
+    # InitTracker: the OU noise restarts from zero in every new episode
     collector = Collector(
-        TransformedEnv(env, RewardSum(in_keys=[(GROUP, "reward")], out_keys=[EPISODE_RETURN])),
-        exploration_policy(algo, actor, n_agents, v_max, a.exploration_sigma),
+        TransformedEnv(env, Compose(InitTracker(), RewardSum(in_keys=[(GROUP, "reward")], out_keys=[EPISODE_RETURN]))),
+        exploration_policy(algo, actor, n_agents, v_max, a.exploration_sigma, a.exploration, a.ou_theta),
         frames_per_batch=fpb, total_frames=remaining, init_random_frames=a.warmup if state is None else 0,
         auto_register_policy_transforms=False,
     )
@@ -191,7 +193,9 @@ def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool =
         frames += batch.numel()
         outcome, ret = finished_episodes(batch, EPISODE_RETURN)  # per agent episode
         window = (window + list(zip(outcome, ret, strict=True)))[-t.stats_window:]
-        rb.extend(agent_transitions(batch, KEEP))
+        if a.n_steps > 1:
+            batch = n_step(batch, a.n_steps, a.gamma)
+        rb.extend(agent_transitions(batch, KEEP + [STEPS] * (a.n_steps > 1)))
 
         logs: dict[str, float] = {}
         if len(rb) >= a.warmup:
