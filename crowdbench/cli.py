@@ -10,7 +10,7 @@ from pathlib import Path
 from crowdbench.envs.core import SimConfig
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
-COMMANDS = ("eval", "run", "leaderboard", "viz", "plot")
+COMMANDS = ("eval", "run", "leaderboard", "submit", "viz", "plot")
 BASELINES = ("orca", "straight", "oracle")
 
 
@@ -248,10 +248,51 @@ def cmd_leaderboard(args: list[str]) -> int:
     return leaderboard_main(args)
 
 
+def training_overrides(cfg: dict) -> list[str]:
+    """The run's ``algo``/``encoder``/``env``/``train`` values that differ from the defaults of its
+    algo and encoder, as ``key=value`` overrides (the submission records how it was trained)."""
+    from omegaconf import OmegaConf
+
+    base = OmegaConf.to_container(compose([f"algo={cfg['algo']['name']}", f"encoder={cfg['encoder']['name']}"]))
+    out = [f"algo={cfg['algo']['name']}", f"encoder={cfg['encoder']['name']}"]
+    for group in ("algo", "encoder", "env", "train"):
+        for key, value in cfg[group].items():
+            if base[group].get(key) != value and key != "max_minutes":
+                out.append(f"{group}.{key}={value}")
+    return [*out, f"seed={cfg['seed']}"]
+
+
+def cmd_submit(args: list[str]) -> int:
+    """Turn a training run into a leaderboard submission (slim checkpoint + submission.yaml)."""
+    import argparse
+
+    from crowdbench.algos.checkpoint import CheckpointError, load_checkpoint
+    from crowdbench.leaderboard import DEFAULT_ROOT, SubmissionError, make_submission
+
+    ap = argparse.ArgumentParser(prog="crowdbench submit",
+                                 description="Make leaderboard/submissions/NAME from a run directory.")
+    ap.add_argument("run", type=Path, help="run directory (holds checkpoint.pt)")
+    ap.add_argument("--name", required=True, help="submission name (directory under submissions/)")
+    ap.add_argument("--entry", required=True, help="row label; seeds of one method share it")
+    ap.add_argument("--authors", default="crowdbench", help="comma-separated author names")
+    ap.add_argument("--link", default=None)
+    ap.add_argument("--notes", default=None)
+    ap.add_argument("--root", type=Path, default=DEFAULT_ROOT)
+    a = ap.parse_args(args)
+    try:
+        cfg = load_checkpoint(a.run / "checkpoint.pt")["config"]
+        path = make_submission(a.run, a.name, a.entry, [x.strip() for x in a.authors.split(",") if x.strip()],
+                               training_overrides(cfg), a.link, a.notes, a.root)
+    except (CheckpointError, SubmissionError, KeyError) as e:
+        raise UsageError(f"submit: {e}") from None
+    print(f"wrote {path}; evaluate it with: crowdbench leaderboard --only {a.name}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help"):
-        print("usage: crowdbench {eval,run,leaderboard,viz,plot} [key=value ...]\n"
+        print("usage: crowdbench {eval,run,leaderboard,submit,viz,plot} [key=value ...]\n"
               "  crowdbench eval policy=orca|straight|oracle|<checkpoint.pt> [eval.scenes=[eth,hotel]] [eval.episodes=N] "
               "[eval.save_episodes=true] [out=DIR]\n"
               "  crowdbench run algo=td3|ddpg|sac encoder=gatedgcn|gcn|mlp [train.total_frames=N] [seed=S] "
@@ -259,6 +300,7 @@ def main(argv: list[str] | None = None) -> int:
               "  crowdbench eval|run ... viz.record=true [viz.episodes=[0,5]] [viz.scenes=[students003]]\n"
               "  crowdbench run|eval env=selfplay [env.n_agents=N] [env.scenario=circle|square|mixed] ...  (docs/selfplay.md)\n"
               "  crowdbench leaderboard [--check] [--force] [--only NAME] [--episodes N] [--scenes a,b] [--root DIR]\n"
+              "  crowdbench submit <run dir> --name NAME --entry LABEL [--authors A,B] [--link URL] [--root DIR]\n"
               "  crowdbench viz <episodes.jsonl|results dir> [--episode N] [--scene S] [--grid K] [--out FILE.png]\n"
               "  crowdbench plot <run dir> [<run dir> ...] [--out FILE.png] [--smooth N]")
         return 0
@@ -273,7 +315,8 @@ def main(argv: list[str] | None = None) -> int:
                 return viz_main(command, overrides)
             except ValueError as e:
                 raise UsageError(str(e)) from None
-        return {"eval": cmd_eval, "run": cmd_run, "leaderboard": cmd_leaderboard}[command](overrides)
+        return {"eval": cmd_eval, "run": cmd_run, "leaderboard": cmd_leaderboard,
+                "submit": cmd_submit}[command](overrides)
     except UsageError as e:
         print(f"crowdbench: error: {e}", file=sys.stderr)
         return 2

@@ -190,6 +190,34 @@ def read_submission(sub_dir: Path) -> Submission:
     return sub
 
 
+def make_submission(run_dir: Path, name: str, entry: str, authors: list[str], overrides: list[str],
+                    link: str | None = None, notes: str | None = None, root: Path = DEFAULT_ROOT) -> Path:
+    """``leaderboard/submissions/<name>/`` from a training run: a slim checkpoint + submission.yaml.
+
+    The checkpoint keeps what evaluation needs (config, actor weights, frames, updates, wall
+    time) and drops the critics and optimiser states (~7x smaller). The yaml is then read back
+    through :func:`read_submission`, so a submission this writes is one the harness accepts."""
+    from crowdbench.algos.checkpoint import load_checkpoint, save_checkpoint
+
+    state = load_checkpoint(Path(run_dir) / "checkpoint.pt")
+    cfg = state["config"]
+    sub_dir = Path(root) / "submissions" / name
+    if sub_dir.exists():
+        raise SubmissionError(sub_dir, None, "already exists; remove it first to replace the submission")
+    sub_dir.mkdir(parents=True)
+    keep = ("config", "actor", "frames", "updates", "wall_time_s")
+    save_checkpoint(sub_dir / "checkpoint.pt", {k: state[k] for k in keep if k in state})
+    data = {"name": name, "kind": "learned", "entry": entry, "encoder": cfg["encoder"]["name"],
+            "algo": cfg["algo"]["name"], "seed": int(cfg["seed"]), "overrides": overrides, "authors": authors}
+    if link:
+        data["link"] = link
+    if notes:
+        data["notes"] = notes
+    (sub_dir / "submission.yaml").write_text(yaml.safe_dump(data, sort_keys=False, width=120))
+    read_submission(sub_dir)
+    return sub_dir
+
+
 # ---------------------------------------------------------------------------------- encoders
 def register_encoder(sub: Submission) -> None:
     """Make ``sub``'s encoder known: an import path or an entry point registers it into ENCODERS."""
@@ -727,4 +755,4 @@ def main(argv: list[str] | None = None) -> int:
     return run(args.root, args.only, args.check, args.force, args.episodes, scenes, jobs=args.jobs)
 
 
-__all__ = ["SubmissionError", "main", "read_submission", "render_readme", "run"]
+__all__ = ["SubmissionError", "main", "make_submission", "read_submission", "render_readme", "run"]

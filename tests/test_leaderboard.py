@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 import torch
+import yaml
 from torch import nn
 
 from crowdbench.algos.builders import build_actor
@@ -203,3 +204,30 @@ def test_parallel_jobs_give_the_same_table(tmp_path):
     assert run(root, log=lambda m: None, **FAST) == 0
     log = []
     assert run(root, check=True, jobs=2, log=log.append, **FAST) == 0, log  # 2 worker processes, same numbers
+
+
+def test_submit_a_run(tmp_path, capsys):
+    """`crowdbench submit` turns a run into a submission the harness evaluates; it records the overrides."""
+    from omegaconf import OmegaConf
+
+    from crowdbench.cli import compose
+
+    cfg = OmegaConf.to_container(compose(["encoder=mlp", "encoder.dim=8", "encoder.hidden=[16]", "algo.n_steps=3",
+                                          "seed=4"]), resolve=True)
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    actor = build_actor("td3", dict(cfg["encoder"]), 1.0, squash=cfg["algo"]["actor_squash"])
+    save_checkpoint(run_dir / "checkpoint.pt", {"config": cfg, "actor": actor.state_dict(), "frames": 640,
+                                                "loss": {"w": torch.zeros(1000, 100)}})
+    root = tmp_path / "lb"
+    assert cli_main(["submit", str(run_dir), "--name", "mine_s4", "--entry", "Mine", "--root", str(root)]) == 0
+    sub = yaml.safe_load((root / "submissions" / "mine_s4" / "submission.yaml").read_text())
+    assert sub["seed"] == 4 and sub["encoder"] == "mlp" and sub["kind"] == "learned"
+    assert {"encoder.dim=8", "encoder.hidden=[16]", "algo.n_steps=3", "seed=4"} <= set(sub["overrides"])
+    assert not any(o.startswith("algo.gamma") for o in sub["overrides"])  # defaults are not repeated
+    slim = torch.load(root / "submissions" / "mine_s4" / "checkpoint.pt", weights_only=True)
+    assert "loss" not in slim and slim["frames"] == 640  # critics and optimisers dropped
+    assert run(root, **FAST) == 0
+    assert "| Mine | 1 |" in (root / "README.md").read_text()
+    assert cli_main(["submit", str(run_dir), "--name", "mine_s4", "--entry", "Mine", "--root", str(root)]) == 2
+    assert "already exists" in capsys.readouterr().err
