@@ -537,3 +537,30 @@ def test_radial_actor_stays_in_speed_disc_and_keeps_gradient():
             assert h.grad.abs().sum() > 0
     with pytest.raises(ValueError, match="unknown actor squash"):
         Actor(enc, squash="disk")
+
+
+def test_lookahead_critic_geometry_and_gradient():
+    """The lookahead critic = the paper's critic applied to the hand-predicted next observation."""
+    from crowdbench.models.heads import Critic, lookahead
+
+    robot = torch.tensor([[0.0, 0.0, 0.5, 0.0, 8.0, 0.0]])
+    humans = torch.tensor([[[1.0, 0.0, -1.0, 0.0], [0.0, 2.0, 0.0, -2.0], [0.0, 0.0, 0.0, 0.0]]])
+    mask = torch.tensor([[True, True, False]])
+    action = torch.tensor([[0.96, 0.72]])  # speed 1.2, clipped as the simulator does to (0.8, 0.6)
+    r2, h2, m2 = lookahead(robot, humans, mask, action, 0.25, 1.0)
+    assert r2[0].tolist() == pytest.approx([0.0, 0.0, 0.8, 0.6, 8.0 - 0.2, -0.15])
+    # human 0: x 1 - 0.25 (its motion) - 0.2 (the robot's); human 1: y 2 - 0.5 - 0.15; padding stays zero
+    assert h2[0, :, :2].flatten().tolist() == pytest.approx([0.55, -0.15, -0.2, 1.35, 0.0, 0.0])
+    assert torch.equal(h2[..., 2:], humans[..., 2:]) and torch.equal(m2, mask)
+    torch.manual_seed(0)
+    enc = make_encoder(name="gatedgcn", dim=16, layers=2, k=8)
+    ahead, plain = Critic(enc, lookahead_dt=0.25), Critic(enc)
+    plain.head = ahead.head
+    a = torch.tensor([[0.3, -0.4]], requires_grad=True)
+    q = ahead(robot, humans, mask, a)
+    assert torch.allclose(q, plain(*lookahead(robot, humans, mask, a.detach(), 0.25, 1.0), a.detach()))
+    (g,) = torch.autograd.grad(q.sum(), a)
+    enc_only = torch.autograd.grad(plain(robot, humans, mask, a).sum(), a)[0]  # through the final MLP only
+    assert not torch.allclose(g, enc_only)  # dQ/da also flows through the encoder's view of the scene
+    with pytest.raises(ValueError, match="lookahead"):
+        ahead.forward_prepared({}, a)

@@ -66,8 +66,9 @@ def build_actor(algo: str, encoder_cfg: dict, v_max: float, hidden=None, squash:
     )
 
 
-def build_critic(encoder_cfg: dict, hidden=None) -> TensorDictModule:
-    return critic_module(Critic(make_encoder(**encoder_cfg), hidden))
+def build_critic(encoder_cfg: dict, hidden=None, lookahead_dt: float = 0.0, v_max: float = 1.0) -> TensorDictModule:
+    """Q network; ``lookahead_dt > 0``: the action-conditioned lookahead critic (models/heads.py Critic)."""
+    return critic_module(Critic(make_encoder(**encoder_cfg), hidden, lookahead_dt, v_max))
 
 
 def build_loss(algo: str, actor, critic, n_agents: int, v_max: float, a: dict, prepared: bool = False):
@@ -79,7 +80,8 @@ def build_loss(algo: str, actor, critic, n_agents: int, v_max: float, a: dict, p
     for acting; the loss gets a prepared view sharing its parameters."""
     spec = leaf_action_spec(n_agents, v_max)
     if prepared and algo != "sac":
-        actor = actor_module(actor.module, prepared=True)
+        lookahead = getattr(critic.module, "lookahead_dt", 0) > 0  # its target needs the raw next observation
+        actor = actor_module(actor.module, prepared=True, carry_raw=lookahead)
         critic = critic_module(critic.module, prepared=True)
     if algo == "td3":
         loss = TD3Loss(actor, critic, action_spec=spec, num_qvalue_nets=2, policy_noise=a["policy_noise"],

@@ -257,7 +257,6 @@ def uses_receptive_layout(layers: int, k: int, n_nodes: int, receptive_field: bo
     return receptive_field and layers <= 2 and (k + 1) ** (layers - 1) < n_nodes - 1
 
 
-@torch.no_grad()
 def build_graph(
     robot: torch.Tensor,
     humans: torch.Tensor,
@@ -271,14 +270,33 @@ def build_graph(
 
     ``receptive_field=True`` uses the robot's receptive-field layout when ``layers <= 2``
     (module docstring); otherwise every node but the goal is a receiving row.
+
+    The topology (who is whose neighbour) is not differentiable; the node and edge features
+    are, with respect to the observation, when it requires grad (the lookahead critic's
+    ``dQ/da``, models/heads.py); otherwise nothing is recorded.
     """
     robot, humans, humans_mask, lead = flatten_obs(robot, humans, humans_mask)
     b, m = humans_mask.shape
     n = m + 2
     pos, valid = node_positions(robot, humans, humans_mask)
+    with torch.no_grad():
+        targets, idx, val, sizes, full = _topology(pos, valid, b, n, k, radius2, layers, receptive_field)
+    mask = val < _INF
+    z = typed_inputs(robot, humans, humans_mask)
+    z_t = z[:, :-1] if full else _gather_rows(z, targets)
+    # one row selection of [z, p], then p_j -> p_j - p_i; padded slots all zero
+    edge_in = _gather_rows(torch.cat((z, pos), -1), idx)
+    rel = edge_in[..., Z_DIM:] - (pos[:, :-1] if full else _gather_rows(pos, targets)).unsqueeze(2)
+    edge_in = torch.cat((edge_in[..., :Z_DIM], rel), -1) * mask.unsqueeze(-1)
+    goal_in = torch.cat((z[:, -1], pos[:, -1] - pos[:, 0]), -1)
+    return Graph(idx, mask, z_t, edge_in, goal_in, valid, targets, sizes, full, lead)
+
+
+def _topology(pos, valid, b: int, n: int, k: int, radius2: float, layers: int, receptive_field: bool):
+    """Receiving rows ``targets``, their neighbour ids ``idx`` and distances ``val`` (inf on padding)."""
     x, y = sender_coords(pos, valid)
     if uses_receptive_layout(layers, k, n, receptive_field):
-        targets = torch.zeros(b, 1, dtype=torch.long, device=robot.device)
+        targets = torch.zeros(b, 1, dtype=torch.long, device=pos.device)
         val, idx = _nearest(x, y, targets, k, radius2)
         if layers == 2:  # T_1 = [robot, its K neighbour slots]
             v2, i2 = _nearest(x, y, idx[:, 0], k, radius2)
@@ -286,19 +304,11 @@ def build_graph(
             val, idx = torch.cat((val, v2), 1), torch.cat((idx, i2), 1)
         sizes, full = receptive_sizes(layers, k), False
     else:
-        targets = torch.arange(n - 1, device=robot.device).unsqueeze(0).expand(b, -1)
+        targets = torch.arange(n - 1, device=pos.device).unsqueeze(0).expand(b, -1)
         val, idx = _nearest(x, y, targets, k, radius2)
         idx = idx.masked_fill(val == _INF, 0)  # padding -> node 0, a valid row for later gathers
         sizes, full = (n - 1,) * layers, True
-    mask = val < _INF
-    z = typed_inputs(robot, humans, humans_mask)
-    z_t = z[:, :-1] if full else _gather_rows(z, targets)
-    # one row selection of [z, p], then p_j -> p_j - p_i, in place; padded slots all zero
-    edge_in = _gather_rows(torch.cat((z, pos), -1), idx)
-    edge_in[..., Z_DIM:] -= (pos[:, :-1] if full else _gather_rows(pos, targets)).unsqueeze(2)
-    edge_in *= mask.unsqueeze(-1)
-    goal_in = torch.cat((z[:, -1], pos[:, -1] - pos[:, 0]), -1)
-    return Graph(idx, mask, z_t, edge_in, goal_in, valid, targets, sizes, full, lead)
+    return targets, idx, val, sizes, full
 
 
 @torch.no_grad()

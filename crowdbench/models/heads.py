@@ -40,6 +40,7 @@ import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 
+from crowdbench.envs.core import clip_speed
 from crowdbench.envs.policy import ACTION, GROUP, OBS
 from crowdbench.models.graph import unpack_obs
 
@@ -117,15 +118,39 @@ class Actor(nn.Module):
         return self.act(forward_prepared(self.encoder, prep)[1])
 
 
+def lookahead(robot, humans, humans_mask, action, dt: float, v_max: float):
+    """The observation one step ahead if the robot moves with ``action`` and every observed human
+    keeps its velocity (robot-relative frame, axes kept): ``robot [*, 6]``, ``humans [*, M, 4]``.
+
+    The robot stays at the origin with velocity ``a`` (speed-clipped as the simulator does),
+    the goal moves by ``-a dt`` and each human by ``(v_h - a) dt``; the mask is unchanged."""
+    a = clip_speed(action.to(robot.dtype), v_max)
+    shift = a * dt
+    robot = torch.cat((robot[..., :2], a, robot[..., 4:6] - shift), -1)
+    moved = humans[..., :2] + humans[..., 2:4] * dt - shift.unsqueeze(-2)
+    humans = torch.cat((moved * humans_mask.unsqueeze(-1).to(humans.dtype), humans[..., 2:4]), -1)
+    return robot, humans, humans_mask
+
+
 class Critic(nn.Module):
-    """``Q(s, a) = MLP([robot_h, a])``; ``hidden=None`` -> ``(out_dim,)``.
+    """``Q(s, a) = MLP([robot_h(s), a])`` (the paper's critic); ``hidden=None`` -> ``(out_dim,)``.
+
+    ``lookahead_dt > 0``: ``Q(s, a) = MLP([robot_h(s'(a)), a])`` where ``s'(a)`` is
+    :func:`lookahead`'s one-step prediction, so the encoder sees where every human will be
+    relative to the robot *after* the action: which action avoids whom becomes a question of
+    geometry the encoder already answers, and ``dQ/da`` flows through it. Why an option:
+    with the paper's critic, TD3 learns *when* a collision comes but not *which action*
+    avoids it (docs/training.md). Cost: the critic's graph depends on the action, so it is
+    built per call instead of once per batch (:func:`prepare_batch` serves the actor only).
 
     ``forward(robot [*, 6], humans [*, M, 4], humans_mask [*, M], action [*, 2]) -> Q [*, 1]``.
     """
 
-    def __init__(self, encoder: nn.Module, hidden: tuple | list | None = None):
+    def __init__(self, encoder: nn.Module, hidden: tuple | list | None = None, lookahead_dt: float = 0.0,
+                 v_max: float = 1.0):
         super().__init__()
         self.encoder = encoder
+        self.lookahead_dt, self.v_max = float(lookahead_dt), float(v_max)
         hidden = list(hidden) if hidden is not None else [encoder.out_dim]
         self.head = mlp([encoder.out_dim + 2, *hidden, 1])
 
@@ -133,9 +158,13 @@ class Critic(nn.Module):
         return self.head(torch.cat((robot_h, action.to(robot_h.dtype)), -1))
 
     def forward(self, robot, humans, humans_mask, action) -> torch.Tensor:
+        if self.lookahead_dt > 0:
+            robot, humans, humans_mask = lookahead(robot, humans, humans_mask, action, self.lookahead_dt, self.v_max)
         return self.q(self.encoder(robot, humans, humans_mask)[1], action)
 
     def forward_prepared(self, prep: dict, action: torch.Tensor) -> torch.Tensor:
+        if self.lookahead_dt > 0:
+            raise ValueError("a lookahead critic builds its graph from the action: use critic_module(prepared=False)")
         return self.q(forward_prepared(self.encoder, prep)[1], action)
 
 
@@ -191,7 +220,8 @@ class _Prepared(nn.Module):
         if self.with_action:
             *tensors, action = tensors
             return self.head.forward_prepared(dict(zip(self.fields, tensors, strict=True)), action)
-        return self.head.forward_prepared(dict(zip(self.fields, tensors, strict=True)))
+        # extra trailing inputs (carry_raw) are not the head's
+        return self.head.forward_prepared(dict(zip(self.fields, tensors[: len(self.fields)], strict=True)))
 
 
 def prepared_keys(encoder: nn.Module) -> list[tuple]:
@@ -202,21 +232,29 @@ def prepared_keys(encoder: nn.Module) -> list[tuple]:
     return [OBS + (encoder.prep_key, f) for f in encoder.prep_fields]
 
 
-def actor_module(actor: Actor, prepared: bool = False) -> TensorDictModule:
+def actor_module(actor: Actor, prepared: bool = False, carry_raw: bool = False) -> TensorDictModule:
     """``TensorDictModule``: ``("agents", "observation", *)`` -> ``("agents", "action")``.
 
-    ``prepared=True`` reads :func:`prepare_batch`'s keys instead (same parameters)."""
+    ``prepared=True`` reads :func:`prepare_batch`'s keys instead (same parameters).
+    ``carry_raw=True`` also lists the raw observation as (unused) inputs: TorchRL's losses
+    select the actor's ``in_keys`` from the next state before calling the target critic,
+    which a lookahead critic needs as raw observation."""
     if prepared:
-        mod = _Prepared(actor, prep_fields(actor.encoder), False)
-        return TensorDictModule(mod, in_keys=prepared_keys(actor.encoder), out_keys=[ACTION])
+        fields = prep_fields(actor.encoder)
+        mod = _Prepared(actor, fields, False)
+        keys = prepared_keys(actor.encoder)
+        if carry_raw and keys != list(OBS_KEYS):
+            keys = keys + list(OBS_KEYS)
+        return TensorDictModule(mod, in_keys=keys, out_keys=[ACTION])
     return TensorDictModule(actor, in_keys=list(OBS_KEYS), out_keys=[ACTION])
 
 
 def critic_module(critic: Critic, prepared: bool = False) -> TensorDictModule:
     """``TensorDictModule``: observation + ``("agents", "action")`` -> ``("agents", "state_action_value")``.
 
-    ``prepared=True`` reads :func:`prepare_batch`'s keys instead (same parameters)."""
-    if prepared:
+    ``prepared=True`` reads :func:`prepare_batch`'s keys instead (same parameters); a lookahead
+    critic always reads the raw observation (its graph depends on the action)."""
+    if prepared and not getattr(critic, "lookahead_dt", 0):
         mod = _Prepared(critic, prep_fields(critic.encoder), True)
         keys = [*prepared_keys(critic.encoder), ACTION]
         return TensorDictModule(mod, in_keys=keys, out_keys=[STATE_ACTION_VALUE])
