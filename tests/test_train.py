@@ -144,9 +144,9 @@ def test_n_step_and_ou_exploration_train(env, tmp_path):
 
 @pytest.mark.parametrize("algo", ["td3", "sac"])
 def test_lookahead_critic_trains(algo, tmp_path):
-    cfg = compose([f"algo={algo}", "algo.critic_lookahead=true", "train.total_frames=256", *TINY,
+    cfg = compose([f"algo={algo}", "algo.critic_lookahead=0.25", "train.total_frames=256", *TINY,
                    *SMALL_ENCODER["gatedgcn"]])
     stats = train(cfg, tmp_path, progress=False)
     assert stats["updates"] > 0 and all(torch.isfinite(torch.tensor(v)) for _, v in read_log(tmp_path, "loss_critic"))
     with pytest.raises(ValueError, match="robot-relative"):
-        train(compose(["algo.critic_lookahead=true", "env.frame=world", *TINY]), tmp_path / "w", progress=False)
+        train(compose(["algo.critic_lookahead=0.25", "env.frame=world", *TINY]), tmp_path / "w", progress=False)

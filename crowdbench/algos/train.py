@@ -111,15 +111,16 @@ def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool =
     env = make_env(cfg, progress_reward=t.progress_reward)
     n_agents, v_max = env.n_agents, cfg.env.v_max
     actor = build_actor(algo, OmegaConf.to_container(cfg.encoder), v_max, squash=a.actor_squash)
-    if a.critic_lookahead and cfg.env.frame == "world":
-        raise ValueError("algo.critic_lookahead needs a robot-relative env.frame (rotate or translate), not world")
-    critic = build_critic(OmegaConf.to_container(cfg.encoder), lookahead_dt=cfg.env.dt if a.critic_lookahead else 0.0,
-                          v_max=v_max)
+    horizon = float(a.critic_lookahead)  # seconds; 0 = the paper's critic
+    if horizon < 0 or (horizon > 0 and cfg.env.frame == "world"):
+        raise ValueError(f"algo.critic_lookahead must be >= 0 s and needs a robot-relative env.frame (rotate or "
+                         f"translate); got {horizon} with frame {cfg.env.frame}")
+    critic = build_critic(OmegaConf.to_container(cfg.encoder), lookahead_dt=horizon, v_max=v_max)
     prepared = algo != "sac"  # SAC's probabilistic actor reads the raw observation
     # the buffer holds one agent per transition (self-play flattens agents into the batch: algos/multiagent.py)
     loss = build_loss(algo, actor, critic, 1, v_max, a, prepared=prepared)
     # graphs built once per sampled batch, for the networks that read them (a lookahead critic builds its own)
-    encoders = (actor.module.encoder,) + (() if a.critic_lookahead else (critic.module.encoder,)) if prepared else ()
+    encoders = (actor.module.encoder,) + (() if horizon > 0 else (critic.module.encoder,)) if prepared else ()
     target_updater = SoftUpdate(loss, tau=a.tau)
     # fused Adam: one kernel for all parameters (~5x cheaper steps for many small tensors on CPU)
     opt_actor = torch.optim.Adam(actor_parameters(loss), lr=a.lr_actor, fused=True)

@@ -119,8 +119,8 @@ class Actor(nn.Module):
 
 
 def lookahead(robot, humans, humans_mask, action, dt: float, v_max: float):
-    """The observation one step ahead if the robot moves with ``action`` and every observed human
-    keeps its velocity (robot-relative frame, axes kept): ``robot [*, 6]``, ``humans [*, M, 4]``.
+    """The observation ``dt`` seconds ahead if the robot moves with ``action`` and every observed
+    human keeps its velocity (robot-relative frame, axes kept): ``robot [*, 6]``, ``humans [*, M, 4]``.
 
     The robot stays at the origin with velocity ``a`` (speed-clipped as the simulator does),
     the goal moves by ``-a dt`` and each human by ``(v_h - a) dt``; the mask is unchanged."""
@@ -136,9 +136,12 @@ class Critic(nn.Module):
     """``Q(s, a) = MLP([robot_h(s), a])`` (the paper's critic); ``hidden=None`` -> ``(out_dim,)``.
 
     ``lookahead_dt > 0``: ``Q(s, a) = MLP([robot_h(s'(a)), a])`` where ``s'(a)`` is
-    :func:`lookahead`'s one-step prediction, so the encoder sees where every human will be
-    relative to the robot *after* the action: which action avoids whom becomes a question of
-    geometry the encoder already answers, and ``dQ/da`` flows through it. Why an option:
+    :func:`lookahead`'s prediction ``lookahead_dt`` seconds ahead (one step: the env's dt;
+    longer: the robot holding ``a``), so the encoder sees where every human will be relative
+    to the robot *after* the action. The features of ``(s'(a), a)`` determine those of
+    ``(s, a)`` (a reparametrisation of the critic's input; only the graph's edges follow the
+    predicted positions). Which action avoids whom becomes a question of geometry the
+    encoder already answers, and ``dQ/da`` flows through it. Why an option:
     with the paper's critic, TD3 learns *when* a collision comes but not *which action*
     avoids it (docs/training.md). Cost: the critic's graph depends on the action, so it is
     built per call instead of once per batch (:func:`prepare_batch` serves the actor only).
