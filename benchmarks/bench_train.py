@@ -2,6 +2,7 @@
 
     python benchmarks/bench_train.py                      # all sections, 2 threads
     python benchmarks/bench_train.py --sections loop --loop-frames 4096
+    python benchmarks/bench_train.py --sections loop --overrides "algo.critic_lookahead=1.0"
 
 - ``latency`` and ``td3``: the sections of ``bench_models.py`` (actor decision at B = 1 on a
   crowded students001 observation; one TD3 update at batch 100 for every encoder preset).
@@ -31,16 +32,17 @@ def read_scalar(run: Path, name: str) -> list[tuple[int, float]]:
     return [(int(float(r[0])), float(r[1])) for r in rows if r]
 
 
-def loop_section(frames: int, encoders: list[str], threads: int) -> None:
+def loop_section(frames: int, encoders: list[str], threads: int, overrides: list[str] = ()) -> None:
     from crowdbench.algos.train import train
     from crowdbench.cli import compose
 
-    print(f"\n## whole training loop (TD3, 16 envs, utd 0.5, PER), {frames} frames after a 2,000-frame warm-up")
+    print(f"\n## whole training loop (TD3, 16 envs, utd 0.5, PER), {frames} frames after a 2,000-frame warm-up"
+          + (f"; {' '.join(overrides)}" if overrides else ""))
     print(f"  {'encoder':16s}{'env-steps/s':>14s}{'updates/s':>12s}{'ms/update':>12s}{'load avg':>10s}")
     for enc in encoders:
         with tempfile.TemporaryDirectory() as tmp:
             cfg = compose([f"encoder={enc}", f"train.total_frames={2048 + frames}", "train.probe_every=100000000",
-                           "train.checkpoint_every=100000000"])
+                           "train.checkpoint_every=100000000", *overrides])
             torch.set_num_threads(threads)
             train(cfg, Path(tmp), progress=False)
             wall = read_scalar(Path(tmp), "wall_time_s")
@@ -61,6 +63,8 @@ def main(argv=None):
     ap.add_argument("--sections", default="latency,td3,loop")
     ap.add_argument("--loop-frames", type=int, default=4096)
     ap.add_argument("--encoders", default="gatedgcn_fast,gcn_fast,mlp_fast")
+    ap.add_argument("--overrides", default="", help="extra training overrides for the loop, e.g. "
+                    "'algo.critic_lookahead=1.0 algo.n_steps=5'")
     args = ap.parse_args(argv)
     import bench_models as bm
 
@@ -77,7 +81,7 @@ def main(argv=None):
         o, a, info, o2 = bm.transition("students001", 100)
         bm.td3_section(o, a, info, o2, args.reps, quick=False)
     if "loop" in sections:
-        loop_section(args.loop_frames, args.encoders.split(","), args.threads)
+        loop_section(args.loop_frames, args.encoders.split(","), args.threads, args.overrides.split())
 
 
 if __name__ == "__main__":

@@ -11,7 +11,12 @@ import torch
 from tensordict.nn import NormalParamExtractor, TensorDictModule, TensorDictSequential
 from torch import nn
 from torchrl.data import Bounded
-from torchrl.modules import AdditiveGaussianModule, OrnsteinUhlenbeckProcessModule, ProbabilisticActor, TanhNormal
+from torchrl.modules import (
+    AdditiveGaussianModule,
+    OrnsteinUhlenbeckProcessModule,
+    ProbabilisticActor,
+    TanhNormal,
+)
 from torchrl.objectives import DDPGLoss, SACLoss, TD3Loss, ValueEstimators
 
 from crowdbench.algos.nstep import STEPS
