@@ -77,3 +77,23 @@ def test_progress_reward_pays_per_metre_towards_the_goal():
     progress = 8.0 - math.hypot(8.0 - 0.15, 0.2)
     assert rewards[1][0] - rewards[0][0] == pytest.approx(0.5 * progress, abs=1e-5)
     assert rewards[1][1] == rewards[0][1]  # standing still earns nothing
+
+
+def test_human_dropout_removes_humans_for_a_whole_episode():
+    env = CrowdEnv("students001", 64, seed=0, human_dropout=1.0)
+    td = env.reset()
+    keep, valid = env.sim.keep, env.sim.scene.valid[env.sim.t]
+    kept = (keep & valid).sum(1).float() / valid.sum(1).clamp_min(1)
+    assert 0.3 < kept.mean().item() < 0.7  # E[1 - u] = 0.5 for u ~ U(0, 1)
+    assert kept.std().item() > 0.1  # the density varies between episodes
+    seen = td["agents", "observation", "humans_mask"][:, 0]
+    assert not (seen & ~keep).any()  # a dropped human is never observed ...
+    for _ in range(5):
+        td["agents", "action"] = torch.zeros(64, 1, 2)
+        td = env.step(td)["next"]
+        assert not (td["agents", "observation", "humans_mask"][:, 0] & ~keep).any()
+    hpos, _, hvalid = env.sim.humans()
+    assert not (hvalid & ~keep).any()  # ... and never collides (absent from the clearance test)
+    assert CrowdEnv("students001", 8, seed=0).sim.keep.all()  # default: the paper's crowd
+    with pytest.raises(ValueError, match="human_dropout"):
+        CrowdEnv("students001", 2, human_dropout=1.5)

@@ -108,7 +108,7 @@ def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool =
     torch.manual_seed(cfg.seed)
     algo = a.name
     # replay (one robot) or self-play (n agents, one shared-weight policy); progress shaping for training only
-    env = make_env(cfg, progress_reward=t.progress_reward)
+    env = make_env(cfg, progress_reward=t.progress_reward, human_dropout=t.human_dropout)
     n_agents, v_max = env.n_agents, cfg.env.v_max
     actor = build_actor(algo, OmegaConf.to_container(cfg.encoder), v_max, squash=a.actor_squash)
     horizon = float(a.critic_lookahead)  # seconds; 0 = the paper's critic

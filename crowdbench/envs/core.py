@@ -152,6 +152,7 @@ class CrowdSim:
         self.heading[..., 0] = 1.0
         self.outcome = torch.full((B, A), TIMEOUT, dtype=torch.long)  # not started = finished
         self.radius_sum = self.cfg.robot_radius + self.cfg.human_radius
+        self.keep = torch.ones(B, self.M, dtype=torch.bool)  # humans present in each env's episode (training dropout)
 
     # ------------------------------------------------------------------ episodes
     @property
@@ -167,12 +168,15 @@ class CrowdSim:
     def start_is_free(self, t0: torch.Tensor, angle: torch.Tensor, margin: float = START_CLEARANCE) -> torch.Tensor:
         return free_start(self.scene, t0, self.start_goal(angle.to(torch.float32))[0], margin, self.radius_sum)
 
-    def reset(self, mask: torch.Tensor, t0: torch.Tensor, angle: torch.Tensor) -> None:
+    def reset(self, mask: torch.Tensor, t0: torch.Tensor, angle: torch.Tensor, keep: torch.Tensor | None = None) -> None:
         """Reset the environments where ``mask`` ([B] bool) is set.
 
         ``t0`` and ``angle`` are ``[B]`` (only the masked entries are used): the scene grid
-        index at which the episode starts and the start angle on the circle.
+        index at which the episode starts and the start angle on the circle. ``keep``
+        ``[B, M]`` (training only): the humans that exist in the new episode; the others are
+        absent for its whole length (not observed, no collisions). Default: all of them.
         """
+        self.keep = torch.where(mask.view(-1, 1), True if keep is None else keep, self.keep)
         if (t0[mask] < 0).any() or (t0[mask] > self.last_start).any():
             raise ValueError(f"start index outside [0, {self.last_start}] for scene {self.scene.name}")
         start, goal = self.start_goal(angle.to(torch.float32))
@@ -193,7 +197,7 @@ class CrowdSim:
     def humans(self, t: torch.Tensor | None = None):
         """Humans at grid index ``t`` ([B]): position, velocity ``[B, M, 2]``, valid ``[B, M]``."""
         t = self.t if t is None else t
-        return self.scene.pos[t], self.scene.vel[t], self.scene.valid[t]
+        return self.scene.pos[t], self.scene.vel[t], self.scene.valid[t] & self.keep
 
     def clearance(self, pos: torch.Tensor, hpos: torch.Tensor, hvalid: torch.Tensor) -> torch.Tensor:
         """Per-human clearance ``[B, A, M]`` (``_FAR`` on padding)."""

@@ -34,16 +34,24 @@ class CrowdEnv(EnvBase):
             distance to the goal (0 = the paper's reward, Eq. 1-2). It pays ``c`` per metre of
             progress, so stalling earns nothing (see docs/training.md for why it is needed at
             CPU budgets); evaluation never uses it.
+        human_dropout: training-only density randomisation ``p``: each episode draws
+            ``u ~ U(0, p)`` and drops each human with probability ``u`` for the whole episode,
+            so that a policy trained on the dense students001 also sees sparse crowds (the
+            evaluation scenes hotel and eth are sparse). 0 (default) = the paper's training.
     """
 
     batch_locked = True
 
     def __init__(self, scene: str = "students001", batch: int = 1, cfg: SimConfig | None = None,
                  seed: int = 0, episodes: tuple[torch.Tensor, torch.Tensor] | None = None,
-                 progress_reward: float = 0.0):
+                 progress_reward: float = 0.0, human_dropout: float = 0.0):
         cfg = cfg or SimConfig()
         super().__init__(batch_size=torch.Size([batch]), device="cpu")
         self.progress_reward = float(progress_reward)
+        if not 0.0 <= human_dropout <= 1.0:
+            raise ValueError(f"human_dropout must be in [0, 1], got {human_dropout}")
+        self.human_dropout = float(human_dropout)
+        self._dropout_rng = torch.Generator().manual_seed(seed + 7919)
         self.cfg = cfg
         self.sim = CrowdSim(load_scene(scene, cfg.dt, cfg.time_base), batch, cfg)
         self.sampler = TrainSampler(self.sim.last_start, seed, self.sim.start_is_free)
@@ -85,7 +93,11 @@ class CrowdEnv(EnvBase):
         angle = torch.zeros(B)
         n = int(mask.sum())
         t0[mask], angle[mask] = self._draw(n)
-        self.sim.reset(mask, t0, angle)
+        keep = None
+        if self.human_dropout > 0:  # density randomisation: drop each human with a per-episode u ~ U(0, p)
+            u = torch.rand(B, 1, generator=self._dropout_rng) * self.human_dropout
+            keep = torch.rand(B, self.sim.M, generator=self._dropout_rng) >= u
+        self.sim.reset(mask, t0, angle, keep)
         A = self.sim.A
         out = self._observation(self.sim.outcome.clone(), self.sim.min_clearance())
         false = torch.zeros(B, 1, dtype=torch.bool)
