@@ -92,7 +92,7 @@ def test_human_dropout_removes_humans_for_a_whole_episode():
         td["agents", "action"] = torch.zeros(64, 1, 2)
         td = env.step(td)["next"]
         assert not (td["agents", "observation", "humans_mask"][:, 0] & ~keep).any()
-    hpos, _, hvalid = env.sim.humans()
+    _, _, hvalid = env.sim.humans()
     assert not (hvalid & ~keep).any()  # ... and never collides (absent from the clearance test)
     assert CrowdEnv("students001", 8, seed=0).sim.keep.all()  # default: the paper's crowd
     with pytest.raises(ValueError, match="human_dropout"):
