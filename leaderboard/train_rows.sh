@@ -4,8 +4,9 @@
 #   bash leaderboard/train_rows.sh [JOBS] [ROW_FILTER]     e.g.  bash leaderboard/train_rows.sh 2 gcn_td3
 #
 # Every row is trained with the same frame budget (a frame budget, not wall time, so that a
-# seed reproduces its run on any machine) and the same recipe; only the encoder, the algorithm
-# and the seed change. Runs go to runs/leaderboard/<name>/, one single-threaded process per job.
+# seed reproduces its run bit for bit: same seed, same torch build, one thread; checked by
+# tests/test_train.py::test_same_seed_same_run) and the same recipe; only the encoder, the
+# algorithm and the seed change. Runs go to runs/leaderboard/<name>/, one single-threaded process per job.
 # Then: crowdbench leaderboard --jobs 2
 set -euo pipefail
 cd "$(dirname "$0")/.."

@@ -46,13 +46,19 @@ KEEP = [(GROUP, "observation"), (GROUP, "action"), ("next", GROUP, "observation"
 MODEL_KEYS = ("algo", "encoder", "env")
 
 
-def make_buffer(a: DictConfig):
+def make_buffer(a: DictConfig, generator: torch.Generator):
+    """PER (the paper) or uniform replay, sampling from ``generator``.
+
+    The generator is not optional: without one TorchRL's prioritized sampler draws from numpy's
+    global RNG, which nothing seeds, and two runs with the same seed diverge at the first update.
+    """
     storage = LazyTensorStorage(a.buffer_size)
     if a.replay == "prioritized":
         rb = TensorDictPrioritizedReplayBuffer(alpha=a.per_alpha, beta=a.per_beta, storage=storage,
-                                               batch_size=a.batch_size, priority_key="td_error")
+                                               batch_size=a.batch_size, priority_key="td_error",
+                                               generator=generator)
     elif a.replay == "uniform":
-        rb = TensorDictReplayBuffer(storage=storage, batch_size=a.batch_size)
+        rb = TensorDictReplayBuffer(storage=storage, batch_size=a.batch_size, generator=generator)
     else:
         raise ValueError(f"unknown replay {a.replay!r}; valid: prioritized, uniform")
     return rb
@@ -126,7 +132,8 @@ def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool =
     opt_actor = torch.optim.Adam(actor_parameters(loss), lr=a.lr_actor, fused=True)
     opt_critic = torch.optim.Adam(critic_parameters(loss), lr=a.lr_critic, fused=True)
     opt_alpha = torch.optim.Adam([loss.log_alpha], lr=a.lr_alpha) if algo == "sac" else None
-    rb = make_buffer(a)
+    replay_rng = torch.Generator().manual_seed(cfg.seed)
+    rb = make_buffer(a, replay_rng)
     # the losses' own critic / actor terms, called separately so the actor is only evaluated when updated
     critic_loss = {"td3": "value_loss", "ddpg": "loss_value", "sac": "qvalue_v2_loss"}[algo]
     critic_loss = getattr(loss, critic_loss)
@@ -140,6 +147,8 @@ def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool =
             opt_alpha.load_state_dict(state["opt_alpha"])
         env.sampler.load_state_dict(state["sampler"])
         torch.set_rng_state(state["torch_rng"])
+        if "replay_rng" in state:  # checkpoints before session 4 have none
+            replay_rng.set_state(state["replay_rng"])
         frames, updates = int(state["frames"]), int(state["updates"])
         truncate_log(out_dir / "logs", frames)
 
@@ -163,6 +172,7 @@ def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool =
             "loss": loss.state_dict(), "opt_actor": opt_actor.state_dict(), "opt_critic": opt_critic.state_dict(),
             **({"opt_alpha": opt_alpha.state_dict()} if opt_alpha is not None else {}),
             "sampler": env.sampler.state_dict(), "torch_rng": torch.get_rng_state(),
+            "replay_rng": replay_rng.get_state(),
             "frames": frames, "updates": updates, "wall_time_s": wall_time_s,
         })
 
