@@ -19,11 +19,15 @@ RECIPE="train.total_frames=$FRAMES train.progress_reward=0.1 algo.exploration_si
 train.probe_every=7168 eval.episodes=50"
 
 rows() {  # name | entry label | overrides   (longest first: better packing over the jobs)
-  echo "gatedgcn_sac_s0|MP-GatedGCN (SAC)|algo=sac encoder=gatedgcn_fast seed=0"
+  for s in 0 1 2; do
+    echo "gatedgcn_sac_s$s|MP-GatedGCN (SAC)|algo=sac encoder=gatedgcn_fast seed=$s"
+  done
   for s in 0 1 2; do
     echo "gatedgcn_td3_s$s|MP-GatedGCN-RL (TD3, gatedgcn)|algo=td3 encoder=gatedgcn_fast seed=$s"
   done
-  echo "gatedgcn_ddpg_s0|MP-GatedGCN (DDPG)|algo=ddpg encoder=gatedgcn_fast seed=0"
+  for s in 0 1 2; do
+    echo "gatedgcn_ddpg_s$s|MP-GatedGCN (DDPG)|algo=ddpg encoder=gatedgcn_fast seed=$s"
+  done
   for s in 0 1 2; do
     echo "gcn_td3_s$s|GCN-RL (TD3, gcn)|algo=td3 encoder=gcn_fast seed=$s"
   done
