@@ -209,7 +209,8 @@ def format_table(results: dict) -> str:
     """A plain-text table: one row per scene."""
     cols = [("success_rate", "success"), ("collision_rate", "collision"), ("timeout_rate", "timeout"),
             ("nav_time_s", "nav time s"), ("dangers_per_episode", "dangers/ep"), ("min_clearance", "min clear m")]
-    head = f"{'scene':<13}" + "".join(f"{name:>24}" for _, name in cols)
+    w = 24  # fits "10.620 [10.156,11.085]"
+    head = f"{'scene':<13}" + "".join(f"{name:>{w}}" for _, name in cols)
     tag = "  [PRIVILEGED: knows the humans' future; an upper bound]" if results.get("privileged") else ""
     lines = [f"policy: {results['policy']}  protocol: {results['protocol']}{tag}", head]
     for scene, r in results["scenes"].items():
@@ -217,10 +218,10 @@ def format_table(results: dict) -> str:
         for key, _ in cols:
             v = r[key]
             cells.append("n/a" if v["mean"] is None else f"{v['mean']:.3f} [{v['ci95'][0]:.3f},{v['ci95'][1]:.3f}]")
-        lines.append(f"{scene:<13}" + "".join(f"{c:>24}" for c in cells))
+        lines.append(f"{scene:<13}" + "".join(f"{c:>{w}}" for c in cells))
     if "average_paper_scenes" in results:
         a = results["average_paper_scenes"]
-        lines.append(f"{'avg (paper)':<13}" + "".join(f"{'n/a' if a[k] is None else f'{a[k]:.3f}':>24}"
+        lines.append(f"{'avg (paper)':<13}" + "".join(f"{'n/a' if a[k] is None else f'{a[k]:.3f}':>{w}}"
                                                       for k, _ in cols if k in a))
     return "\n".join(lines)
 

@@ -18,22 +18,16 @@ FRAMES=${FRAMES:-28672}
 RECIPE="train.total_frames=$FRAMES train.progress_reward=0.1 algo.exploration_sigma=0.3 algo.critic_lookahead=0.25 \
 train.probe_every=7168 eval.episodes=50"
 
+seeds() {  # NAME LABEL OVERRIDES -> one row per training seed
+  for s in 0 1 2; do echo "$1_s$s|$2|$3 seed=$s"; done
+}
+
 rows() {  # name | entry label | overrides   (longest first: better packing over the jobs)
-  for s in 0 1 2; do
-    echo "gatedgcn_sac_s$s|MP-GatedGCN (SAC)|algo=sac encoder=gatedgcn_fast seed=$s"
-  done
-  for s in 0 1 2; do
-    echo "gatedgcn_td3_s$s|MP-GatedGCN-RL (TD3, gatedgcn)|algo=td3 encoder=gatedgcn_fast seed=$s"
-  done
-  for s in 0 1 2; do
-    echo "gatedgcn_ddpg_s$s|MP-GatedGCN (DDPG)|algo=ddpg encoder=gatedgcn_fast seed=$s"
-  done
-  for s in 0 1 2; do
-    echo "gcn_td3_s$s|GCN-RL (TD3, gcn)|algo=td3 encoder=gcn_fast seed=$s"
-  done
-  for s in 0 1 2; do
-    echo "mlp_td3_s$s|DNN-RL (TD3, mlp)|algo=td3 encoder=mlp_fast seed=$s"
-  done
+  seeds gatedgcn_sac "MP-GatedGCN (SAC)" "algo=sac encoder=gatedgcn_fast"
+  seeds gatedgcn_td3 "MP-GatedGCN-RL (TD3, gatedgcn)" "algo=td3 encoder=gatedgcn_fast"
+  seeds gatedgcn_ddpg "MP-GatedGCN (DDPG)" "algo=ddpg encoder=gatedgcn_fast"
+  seeds gcn_td3 "GCN-RL (TD3, gcn)" "algo=td3 encoder=gcn_fast"
+  seeds mlp_td3 "DNN-RL (TD3, mlp)" "algo=td3 encoder=mlp_fast"
 }
 
 train_row() {
