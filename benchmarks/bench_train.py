@@ -6,6 +6,11 @@
 
 - ``latency`` and ``td3``: the sections of ``bench_models.py`` (actor decision at B = 1 on a
   crowded students001 observation; one TD3 update at batch 100 for every encoder preset).
+- ``update``: one gradient update exactly as ``crowdbench run`` makes it (``Learner.update``
+  on a batch of 100 sampled from a PER buffer of real students001 transitions, then the
+  priority write-back), per encoder preset, with the paper's critic and with the leaderboard
+  recipe's lookahead critic; TD3 updates the actor every 2nd step, so the mean over 2 steps is
+  the cost per update, and the full step (critics + actor + targets) is printed beside it.
 - ``loop``: ``crowdbench.algos.train.train`` exactly as ``crowdbench run`` calls it (TD3,
   16 envs, PER, utd 0.5), timed after the warm-up from its own log: env-steps/s and
   updates/s of collection + updates together, for each fast encoder preset.
@@ -56,11 +61,58 @@ def loop_section(frames: int, encoders: list[str], threads: int, overrides: list
                   f"{os.getloadavg()[0]:10.2f}")
 
 
+def update_section(encoders: list[str], reps: int, overrides: list[str] = ()) -> None:
+    import bench_models as bm
+    from torchrl.collectors import Collector
+
+    from crowdbench.algos.builders import exploration_policy
+    from crowdbench.algos.learner import Learner
+    from crowdbench.algos.multiagent import agent_transitions
+    from crowdbench.algos.train import KEEP, make_buffer
+    from crowdbench.cli import compose
+    from crowdbench.envs.factory import make_env
+
+    print("\n## one training update as `crowdbench run` makes it, batch 100 from a PER buffer of 4,096 students001"
+          " transitions (ms) — target <= 30 ms for gatedgcn_fast"
+          + (f"; {' '.join(overrides)}" if overrides else ""))
+    print(f"  {'encoder':16s}{'critic':>8s}{'per update (d=2)':>18s}{'critic-only':>13s}{'full step':>11s}")
+    for enc in encoders:
+        for lookahead in (0.0, 0.25):
+            cfg = compose([f"encoder={enc}", f"algo.critic_lookahead={lookahead}", *overrides])
+            torch.manual_seed(0)
+            env = make_env(cfg)
+            learner = Learner(cfg)
+            rb = make_buffer(cfg.algo, torch.Generator().manual_seed(0))
+            policy = exploration_policy("td3", learner.actor, env.n_agents, cfg.env.v_max, 0.3)
+            for batch in Collector(env, policy, frames_per_batch=1024, total_frames=4096,
+                                   auto_register_policy_transforms=False):
+                rb.extend(agent_transitions(batch, KEEP))
+            n = [0]
+
+            def step(n=n, learner=learner, rb=rb):
+                sample = rb.sample()
+                learner.update(sample, n[0])
+                rb.update_tensordict_priority(sample)
+                n[0] += 1
+
+            def critic_only(n=n, step=step):
+                n[0] = 1  # not a multiple of policy_delay: no actor update
+                step()
+
+            def full(n=n, step=step):
+                n[0] = 0
+                step()
+
+            tc, tf = bm.bench(critic_only, reps), bm.bench(full, reps)
+            label = "lookahead" if lookahead else "paper"
+            print(f"  {enc:16s}{label:>8s}{(tc + tf) / 2:18.2f}{tc:13.2f}{tf:11.2f}")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--reps", type=int, default=20)
-    ap.add_argument("--sections", default="latency,td3,loop")
+    ap.add_argument("--sections", default="latency,td3,update,loop")
     ap.add_argument("--loop-frames", type=int, default=4096)
     ap.add_argument("--encoders", default="gatedgcn_fast,gcn_fast,mlp_fast")
     ap.add_argument("--overrides", default="", help="extra training overrides for the loop, e.g. "
@@ -80,6 +132,8 @@ def main(argv=None):
     if "td3" in sections:
         o, a, info, o2 = bm.transition("students001", 100)
         bm.td3_section(o, a, info, o2, args.reps, quick=False)
+    if "update" in sections:
+        update_section(args.encoders.split(","), args.reps, args.overrides.split())
     if "loop" in sections:
         loop_section(args.loop_frames, args.encoders.split(","), args.threads, args.overrides.split())
 

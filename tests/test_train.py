@@ -165,3 +165,39 @@ def test_same_seed_same_run(tmp_path):
     assert read_log(tmp_path / "a", "loss_critic") == read_log(tmp_path / "b", "loss_critic")
     assert read_log(tmp_path / "a", "episode_return") == read_log(tmp_path / "b", "episode_return")
     assert not all(torch.equal(runs["a"][k], runs["c"][k]) for k in runs["a"])
+
+
+@pytest.mark.parametrize("lookahead", [0.0, 0.25])
+def test_td3_actor_loss_reads_critic_one_only(lookahead):
+    """TD3LossQ1's actor term equals TorchRL's (which runs both twin critics and keeps the first):
+    same loss and same actor gradient, on a batch of real transitions; no gradient reaches a critic."""
+    from torchrl.collectors import Collector
+    from torchrl.objectives import TD3Loss
+
+    from crowdbench.algos.builders import exploration_policy
+    from crowdbench.algos.learner import Learner
+    from crowdbench.algos.multiagent import agent_transitions
+    from crowdbench.algos.train import KEEP
+    from crowdbench.envs.factory import make_env
+    from crowdbench.models.heads import prepare_batch
+
+    torch.manual_seed(0)
+    cfg = compose([*TINY, *SMALL_ENCODER["gatedgcn"], f"algo.critic_lookahead={lookahead}"])
+    env, learner = make_env(cfg), Learner(cfg)
+    policy = exploration_policy("td3", learner.actor, env.n_agents, cfg.env.v_max, 0.3)
+    batch = next(iter(Collector(env, policy, frames_per_batch=64, total_frames=64, auto_register_policy_transforms=False)))
+    sample = prepare_batch(agent_transitions(batch, KEEP), *learner.encoders)
+    loss = learner.loss
+    actor_params = [p for p in loss.actor_network_params.values(True, True)]
+    grads = []
+    for actor_loss in (loss.actor_loss, lambda td: TD3Loss.actor_loss(loss, td)):
+        value, _ = actor_loss(sample.clone())
+        grads.append((value.detach(), torch.autograd.grad(value, actor_params)))
+    (v1, g1), (v2, g2) = grads
+    torch.testing.assert_close(v1, v2)
+    for a, b in zip(g1, g2, strict=True):
+        torch.testing.assert_close(a, b)
+    assert any(g.abs().sum() > 0 for g in g1)
+    value, _ = loss.actor_loss(sample.clone())
+    value.backward()
+    assert all(p.grad is None for p in loss.qvalue_network_params.values(True, True))

@@ -51,6 +51,26 @@ class GaussianHead(nn.Module):
         return self.head(h)
 
 
+class TD3LossQ1(TD3Loss):
+    """TorchRL's ``TD3Loss`` whose actor term evaluates critic 1 only.
+
+    Algorithm 1 (line 15) and TD3 ascend ``Q_theta1(s, pi(s))``. TorchRL 0.14's ``actor_loss``
+    runs both twin critics (vmapped) and keeps the first, so half of the actor step's critic
+    work, forward and backward, is discarded: this saves ~15% of a full TD3 update on CPU
+    (docs/benchmarks.md). Same value and gradients (``tests/test_train.py``)."""
+
+    def actor_loss(self, tensordict) -> tuple[torch.Tensor, dict]:
+        td = tensordict.select(*self.actor_network.in_keys, strict=False)
+        with self.actor_network_params.to_module(self.actor_network, preserve_module_state=False):
+            td = self.actor_network(td)
+        td = td.select(*self.qvalue_network.in_keys, strict=False)
+        q1 = self._cached_detach_qvalue_network_params[0]  # the stacked twins' first critic, no grad to it
+        with q1.to_module(self.qvalue_network, preserve_module_state=False):
+            q = self.qvalue_network(td).get(self.tensor_keys.state_action_value).squeeze(-1)
+        loss = self._reduce_loss(-q, tensordict=tensordict, weights=self._maybe_get_priority_weight(tensordict))
+        return loss, {"state_action_value_actor": q.detach()}
+
+
 def leaf_action_spec(n_agents: int, v_max: float) -> Bounded:
     return Bounded(-v_max, v_max, (n_agents, 2))
 
@@ -89,7 +109,7 @@ def build_loss(algo: str, actor, critic, n_agents: int, v_max: float, a: dict, p
         actor = actor_module(actor.module, prepared=True, carry_raw=lookahead)
         critic = critic_module(critic.module, prepared=True)
     if algo == "td3":
-        loss = TD3Loss(actor, critic, action_spec=spec, num_qvalue_nets=2, policy_noise=a["policy_noise"],
+        loss = TD3LossQ1(actor, critic, action_spec=spec, num_qvalue_nets=2, policy_noise=a["policy_noise"],
                        noise_clip=a["noise_clip"], loss_function=a["loss_function"], use_prioritized_weights=False)
     elif algo == "ddpg":
         loss = DDPGLoss(actor, critic, loss_function=a["loss_function"], delay_actor=True, delay_value=True,

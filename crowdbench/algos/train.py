@@ -18,25 +18,17 @@ from omegaconf import DictConfig, OmegaConf
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictPrioritizedReplayBuffer, TensorDictReplayBuffer
 from torchrl.envs import Compose, InitTracker, RewardSum, TransformedEnv
-from torchrl.objectives import SoftUpdate
 from torchrl.record.loggers.csv import CSVLogger
 from tqdm import tqdm
 
-from crowdbench.algos.builders import (
-    actor_parameters,
-    build_actor,
-    build_critic,
-    build_loss,
-    critic_parameters,
-    exploration_policy,
-)
+from crowdbench.algos.builders import exploration_policy
 from crowdbench.algos.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from crowdbench.algos.learner import Learner
 from crowdbench.algos.multiagent import agent_transitions, finished_episodes
 from crowdbench.algos.nstep import STEPS, n_step
 from crowdbench.envs.core import COLLISION, SUCCESS
 from crowdbench.envs.factory import make_env
 from crowdbench.envs.policy import GROUP
-from crowdbench.models.heads import prepare_batch
 from crowdbench.models.perf import tune_allocator
 
 EPISODE_RETURN = (GROUP, "episode_reward")
@@ -78,13 +70,6 @@ def make_logger(kind: str, out_dir: Path):
     raise ValueError(f"unknown train.logger {kind!r}; valid: csv, tensorboard")
 
 
-def per_transition(err: torch.Tensor, n: int) -> torch.Tensor:
-    """One priority per sampled transition: the largest error over twin critics and agents."""
-    if err.shape[0] != n:  # TD3 stacks its critics first: [2, n, ...]
-        err = err.amax(0)
-    return err.reshape(n, -1).amax(-1)
-
-
 def truncate_log(log_dir: Path, frames: int) -> None:
     """After a resume, drop rows logged past the checkpoint: they are about to be logged again."""
     for f in (log_dir / "scalars").glob("*.csv"):
@@ -115,36 +100,13 @@ def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool =
     algo = a.name
     # replay (one robot) or self-play (n agents, one shared-weight policy); progress shaping for training only
     env = make_env(cfg, progress_reward=t.progress_reward, human_dropout=t.human_dropout)
-    n_agents, v_max = env.n_agents, cfg.env.v_max
-    actor = build_actor(algo, OmegaConf.to_container(cfg.encoder), v_max, squash=a.actor_squash)
-    horizon = float(a.critic_lookahead)  # seconds; 0 = the paper's critic
-    if horizon < 0 or (horizon > 0 and cfg.env.frame == "world"):
-        raise ValueError(f"algo.critic_lookahead must be >= 0 s and needs a robot-relative env.frame (rotate or "
-                         f"translate); got {horizon} with frame {cfg.env.frame}")
-    critic = build_critic(OmegaConf.to_container(cfg.encoder), lookahead_dt=horizon, v_max=v_max)
-    prepared = algo != "sac"  # SAC's probabilistic actor reads the raw observation
-    # the buffer holds one agent per transition (self-play flattens agents into the batch: algos/multiagent.py)
-    loss = build_loss(algo, actor, critic, 1, v_max, a, prepared=prepared)
-    # graphs built once per sampled batch, for the networks that read them (a lookahead critic builds its own)
-    encoders = (actor.module.encoder,) + (() if horizon > 0 else (critic.module.encoder,)) if prepared else ()
-    target_updater = SoftUpdate(loss, tau=a.tau)
-    # fused Adam: one kernel for all parameters (~5x cheaper steps for many small tensors on CPU)
-    opt_actor = torch.optim.Adam(actor_parameters(loss), lr=a.lr_actor, fused=True)
-    opt_critic = torch.optim.Adam(critic_parameters(loss), lr=a.lr_critic, fused=True)
-    opt_alpha = torch.optim.Adam([loss.log_alpha], lr=a.lr_alpha) if algo == "sac" else None
+    learner = Learner(cfg)
+    actor = learner.actor
     replay_rng = torch.Generator().manual_seed(cfg.seed)
     rb = make_buffer(a, replay_rng)
-    # the losses' own critic / actor terms, called separately so the actor is only evaluated when updated
-    critic_loss = {"td3": "value_loss", "ddpg": "loss_value", "sac": "qvalue_v2_loss"}[algo]
-    critic_loss = getattr(loss, critic_loss)
-    actor_loss = loss.loss_actor if algo == "ddpg" else loss.actor_loss
     frames = updates = 0
     if state is not None:
-        loss.load_state_dict(state["loss"])
-        opt_actor.load_state_dict(state["opt_actor"])
-        opt_critic.load_state_dict(state["opt_critic"])
-        if opt_alpha is not None:
-            opt_alpha.load_state_dict(state["opt_alpha"])
+        learner.load_state_dict(state)
         env.sampler.load_state_dict(state["sampler"])
         torch.set_rng_state(state["torch_rng"])
         if "replay_rng" in state:  # checkpoints before session 4 have none
@@ -161,43 +123,18 @@ def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool =
     # InitTracker: the OU noise restarts from zero in every new episode
     collector = Collector(
         TransformedEnv(env, Compose(InitTracker(), RewardSum(in_keys=[(GROUP, "reward")], out_keys=[EPISODE_RETURN]))),
-        exploration_policy(algo, actor, n_agents, v_max, a.exploration_sigma, a.exploration, a.ou_theta),
+        exploration_policy(algo, actor, env.n_agents, cfg.env.v_max, a.exploration_sigma, a.exploration, a.ou_theta),
         frames_per_batch=fpb, total_frames=remaining, init_random_frames=a.warmup if state is None else 0,
         auto_register_policy_transforms=False,
     )
 
     def save(wall_time_s: float):
         save_checkpoint(ckpt_path, {
-            "config": OmegaConf.to_container(cfg, resolve=True), "actor": actor.state_dict(),
-            "loss": loss.state_dict(), "opt_actor": opt_actor.state_dict(), "opt_critic": opt_critic.state_dict(),
-            **({"opt_alpha": opt_alpha.state_dict()} if opt_alpha is not None else {}),
+            "config": OmegaConf.to_container(cfg, resolve=True), **learner.state_dict(),
             "sampler": env.sampler.state_dict(), "torch_rng": torch.get_rng_state(),
             "replay_rng": replay_rng.get_state(),
             "frames": frames, "updates": updates, "wall_time_s": wall_time_s,
         })
-
-    def update(sample, n: int) -> dict[str, float]:
-        """One gradient step: critics always; actor, temperature and targets every policy_delay."""
-        q_loss, meta = critic_loss(sample)
-        opt_critic.zero_grad()
-        q_loss.backward()
-        opt_critic.step()
-        sample.set("td_error", per_transition(meta["td_error"].detach(), sample.batch_size[0]))
-        out = {"loss_critic": q_loss.item()}
-        if n % a.policy_delay == 0:
-            pi_loss, pi_meta = actor_loss(sample)
-            opt_actor.zero_grad()
-            pi_loss.backward()
-            opt_actor.step()
-            if opt_alpha is not None:
-                alpha_loss = loss.alpha_loss(pi_meta["log_prob"]).mean()
-                opt_alpha.zero_grad()
-                alpha_loss.backward()
-                opt_alpha.step()
-                out["alpha"] = loss.log_alpha.exp().item()
-            target_updater.step()
-            out["loss_actor"] = pi_loss.item()
-        return out
 
     bar = tqdm(total=t.total_frames, initial=frames, disable=not progress, unit="frame", dynamic_ncols=True)
     last_ckpt, last_probe, start = frames, frames, time.time()
@@ -216,9 +153,7 @@ def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool =
         if len(rb) >= a.warmup:
             for _ in range(max(1, int(t.utd * batch.numel()))):
                 sample = rb.sample()
-                if prepared:
-                    prepare_batch(sample, *encoders)
-                logs.update(update(sample, updates))
+                logs.update(learner.update(sample, updates))
                 updates += 1
                 if a.replay == "prioritized":
                     rb.update_tensordict_priority(sample)
