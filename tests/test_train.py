@@ -168,11 +168,13 @@ def test_same_seed_same_run(tmp_path):
 
 
 @pytest.mark.parametrize("lookahead", [0.0, 0.25])
-def test_td3_actor_loss_reads_critic_one_only(lookahead):
-    """TD3LossQ1's actor term equals TorchRL's (which runs both twin critics and keeps the first):
-    same loss and same actor gradient, on a batch of real transitions; no gradient reaches a critic."""
+def test_td3_loss_matches_torchrl(lookahead):
+    """TD3LossQ1 (actor term through critic 1; twin critics vmapped over parameters only) gives
+    TorchRL's TD3Loss values and gradients on a batch of real transitions, for the paper's and
+    the lookahead critic; no gradient of the actor term reaches a critic."""
     from torchrl.collectors import Collector
     from torchrl.objectives import TD3Loss
+    from torchrl.objectives.utils import _vmap_func
 
     from crowdbench.algos.builders import exploration_policy
     from crowdbench.algos.learner import Learner
@@ -185,19 +187,27 @@ def test_td3_actor_loss_reads_critic_one_only(lookahead):
     cfg = compose([*TINY, *SMALL_ENCODER["gatedgcn"], f"algo.critic_lookahead={lookahead}"])
     env, learner = make_env(cfg), Learner(cfg)
     policy = exploration_policy("td3", learner.actor, env.n_agents, cfg.env.v_max, 0.3)
-    batch = next(iter(Collector(env, policy, frames_per_batch=64, total_frames=64, auto_register_policy_transforms=False)))
+    batch = next(iter(Collector(env, policy, frames_per_batch=64, total_frames=64,
+                                auto_register_policy_transforms=False)))
     sample = prepare_batch(agent_transitions(batch, KEEP), *learner.encoders)
     loss = learner.loss
-    actor_params = [p for p in loss.actor_network_params.values(True, True)]
-    grads = []
-    for actor_loss in (loss.actor_loss, lambda td: TD3Loss.actor_loss(loss, td)):
-        value, _ = actor_loss(sample.clone())
-        grads.append((value.detach(), torch.autograd.grad(value, actor_params)))
-    (v1, g1), (v2, g2) = grads
-    torch.testing.assert_close(v1, v2)
-    for a, b in zip(g1, g2, strict=True):
-        torch.testing.assert_close(a, b)
-    assert any(g.abs().sum() > 0 for g in g1)
+    actor_params = list(loss.actor_network_params.values(True, True))
+    critic_params = list(loss.qvalue_network_params.values(True, True))
+
+    def run(term, params):
+        torch.manual_seed(1)  # the value term draws the target policy noise
+        value, meta = term(sample.clone())
+        return value.detach(), meta, torch.autograd.grad(value, params)
+
+    ours = run(loss.actor_loss, actor_params), run(loss.value_loss, critic_params)
+    loss._vmap_qvalue_network00 = _vmap_func(loss.qvalue_network, randomness=loss.vmap_randomness)  # TorchRL's
+    theirs = run(lambda td: TD3Loss.actor_loss(loss, td), actor_params), run(loss.value_loss, critic_params)
+    for (v1, m1, g1), (v2, m2, g2) in zip(ours, theirs, strict=True):
+        torch.testing.assert_close(v1, v2)
+        for a, b in zip(g1, g2, strict=True):
+            torch.testing.assert_close(a, b)
+        assert any(g.abs().sum() > 0 for g in g1)
+    torch.testing.assert_close(ours[1][1]["td_error"], theirs[1][1]["td_error"])
     value, _ = loss.actor_loss(sample.clone())
     value.backward()
-    assert all(p.grad is None for p in loss.qvalue_network_params.values(True, True))
+    assert all(p.grad is None for p in critic_params)

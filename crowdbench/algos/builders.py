@@ -18,6 +18,7 @@ from torchrl.modules import (
     TanhNormal,
 )
 from torchrl.objectives import DDPGLoss, SACLoss, TD3Loss, ValueEstimators
+from torchrl.objectives.utils import _vmap_func
 
 from crowdbench.algos.nstep import STEPS
 from crowdbench.envs.policy import ACTION, GROUP
@@ -52,12 +53,27 @@ class GaussianHead(nn.Module):
 
 
 class TD3LossQ1(TD3Loss):
-    """TorchRL's ``TD3Loss`` whose actor term evaluates critic 1 only.
+    """TorchRL's ``TD3Loss`` with two CPU savings, same values and gradients (``tests/test_train.py``).
 
-    Algorithm 1 (line 15) and TD3 ascend ``Q_theta1(s, pi(s))``. TorchRL 0.14's ``actor_loss``
-    runs both twin critics (vmapped) and keeps the first, so half of the actor step's critic
-    work, forward and backward, is discarded: this saves ~15% of a full TD3 update on CPU
-    (docs/benchmarks.md). Same value and gradients (``tests/test_train.py``)."""
+    - The actor term evaluates critic 1 only. Algorithm 1 (line 15) and TD3 ascend
+      ``Q_theta1(s, pi(s))``; TorchRL 0.14's ``actor_loss`` runs both twin critics (vmapped)
+      and keeps the first, discarding half of the actor step's critic work, forward and backward.
+    - The twin critics are vmapped over their parameters only. TorchRL expands the batch to
+      ``[2, B]`` and vmaps over it too, so everything that depends on the batch alone (a
+      lookahead critic's graph construction, masks, gathers) runs twice; here it runs once.
+    Figures in docs/benchmarks.md."""
+
+    def _make_vmap(self):
+        super()._make_vmap()
+        if self.deactivate_vmap:
+            return
+        twins = _vmap_func(self.qvalue_network, in_dims=(None, 0), randomness=self.vmap_randomness)
+
+        def shared_batch(td, params):
+            # TD3Loss calls this with ``td.expand(num_qvalue_nets, *batch)``: one batch for every critic
+            return twins(td[0], params)
+
+        self._vmap_qvalue_network00 = shared_batch
 
     def actor_loss(self, tensordict) -> tuple[torch.Tensor, dict]:
         td = tensordict.select(*self.actor_network.in_keys, strict=False)
