@@ -18,7 +18,6 @@ from torchrl.modules import (
     TanhNormal,
 )
 from torchrl.objectives import DDPGLoss, SACLoss, TD3Loss, ValueEstimators
-from torchrl.objectives.utils import _vmap_func
 
 from crowdbench.algos.nstep import STEPS
 from crowdbench.envs.policy import ACTION, GROUP
@@ -50,41 +49,6 @@ class GaussianHead(nn.Module):
     def forward(self, robot, humans=None, humans_mask=None):
         _, h = self.encoder(*unpack_obs(robot, humans, humans_mask))
         return self.head(h)
-
-
-class TD3LossQ1(TD3Loss):
-    """TorchRL's ``TD3Loss`` with two CPU savings, same values and gradients (``tests/test_train.py``).
-
-    - The actor term evaluates critic 1 only. Algorithm 1 (line 15) and TD3 ascend
-      ``Q_theta1(s, pi(s))``; TorchRL 0.14's ``actor_loss`` runs both twin critics (vmapped)
-      and keeps the first, discarding half of the actor step's critic work, forward and backward.
-    - The twin critics are vmapped over their parameters only. TorchRL expands the batch to
-      ``[2, B]`` and vmaps over it too, so everything that depends on the batch alone (a
-      lookahead critic's graph construction, masks, gathers) runs twice; here it runs once.
-    Figures in docs/benchmarks.md."""
-
-    def _make_vmap(self):
-        super()._make_vmap()
-        if self.deactivate_vmap:
-            return
-        twins = _vmap_func(self.qvalue_network, in_dims=(None, 0), randomness=self.vmap_randomness)
-
-        def shared_batch(td, params):
-            # TD3Loss calls this with ``td.expand(num_qvalue_nets, *batch)``: one batch for every critic
-            return twins(td[0], params)
-
-        self._vmap_qvalue_network00 = shared_batch
-
-    def actor_loss(self, tensordict) -> tuple[torch.Tensor, dict]:
-        td = tensordict.select(*self.actor_network.in_keys, strict=False)
-        with self.actor_network_params.to_module(self.actor_network, preserve_module_state=False):
-            td = self.actor_network(td)
-        td = td.select(*self.qvalue_network.in_keys, strict=False)
-        q1 = self._cached_detach_qvalue_network_params[0]  # the stacked twins' first critic, no grad to it
-        with q1.to_module(self.qvalue_network, preserve_module_state=False):
-            q = self.qvalue_network(td).get(self.tensor_keys.state_action_value).squeeze(-1)
-        loss = self._reduce_loss(-q, tensordict=tensordict, weights=self._maybe_get_priority_weight(tensordict))
-        return loss, {"state_action_value_actor": q.detach()}
 
 
 def leaf_action_spec(n_agents: int, v_max: float) -> Bounded:
@@ -125,7 +89,7 @@ def build_loss(algo: str, actor, critic, n_agents: int, v_max: float, a: dict, p
         actor = actor_module(actor.module, prepared=True, carry_raw=lookahead)
         critic = critic_module(critic.module, prepared=True)
     if algo == "td3":
-        loss = TD3LossQ1(actor, critic, action_spec=spec, num_qvalue_nets=2, policy_noise=a["policy_noise"],
+        loss = TD3Loss(actor, critic, action_spec=spec, num_qvalue_nets=2, policy_noise=a["policy_noise"],
                        noise_clip=a["noise_clip"], loss_function=a["loss_function"], use_prioritized_weights=False)
     elif algo == "ddpg":
         loss = DDPGLoss(actor, critic, loss_function=a["loss_function"], delay_actor=True, delay_value=True,
