@@ -361,6 +361,8 @@ def plot_runs(runs: list[Path], out: Path, n_smooth: int = 20) -> Path:
     for ax, (title, _) in zip(axes[0], panels, strict=True):
         if title.startswith("success"):
             ax.set_ylim(-0.02, 1.02)
+        if title == "critic loss" and all(ln.get_ydata().min() > 0 for ln in ax.get_lines()):
+            ax.set_yscale("log")  # a diverging critic spans orders of magnitude (docs/training.md, session 5)
         if ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize=7)
     if any(len(m) > 1 for _, m in groups):
