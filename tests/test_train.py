@@ -53,6 +53,19 @@ def test_resume_continues_counter_and_log(tmp_path):
     assert log[-1][1] > first[-1][1]  # updates keep counting from the checkpoint
 
 
+def test_resume_checks_the_config(tmp_path):
+    """A resumed run must keep the model and task; the replay buffer (not checkpointed) may change kind."""
+    base = ["algo=td3", "encoder=gcn", *TINY, *SMALL_ENCODER["gcn"]]
+    train(compose([*base, "train.total_frames=256"]), tmp_path, progress=False)
+    with pytest.raises(CheckpointError, match=r"config 'encoder' differs .*\(encoder\.dim\)"):
+        train(compose([*base, "train.total_frames=512", "encoder.dim=8"]), tmp_path, resume=True, progress=False)
+    with pytest.raises(CheckpointError, match=r"config 'algo' differs .*\(algo\.lr_critic\)"):
+        train(compose([*base, "train.total_frames=512", "algo.lr_critic=0.01"]), tmp_path, resume=True, progress=False)
+    stats = train(compose([*base, "train.total_frames=512", "algo.replay=uniform"]), tmp_path, resume=True,
+                  progress=False)
+    assert stats["frames"] == 512 and load_checkpoint(tmp_path / "checkpoint.pt")["frames"] == 512
+
+
 def test_resume_after_kill(tmp_path):
     """Kill a real `crowdbench run` after its first checkpoint, resume it, and check the log and counter."""
     args = [sys.executable, "-m", "crowdbench.cli", "run", "algo=td3", "encoder=gcn", *TINY, *SMALL_ENCODER["gcn"],

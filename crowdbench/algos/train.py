@@ -36,6 +36,9 @@ EPISODE_RETURN = (GROUP, "episode_reward")
 KEEP = [(GROUP, "observation"), (GROUP, "action"), ("next", GROUP, "observation"), ("next", GROUP, "reward"),
         ("next", GROUP, "done"), ("next", GROUP, "terminated")]
 MODEL_KEYS = ("algo", "encoder", "env")
+# keys a resumed run may change: the replay buffer is not checkpointed, so its kind is free
+# (e.g. continue a prioritized run with uniform replay: docs/training.md, session 5)
+RESUME_FREE = {"algo": ("replay", "per_alpha", "per_beta")}
 
 
 def make_buffer(a: DictConfig, generator: torch.Generator):
@@ -92,8 +95,14 @@ def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool =
         state = load_checkpoint(ckpt_path)
         saved = OmegaConf.create(state["config"])
         for key in MODEL_KEYS:  # the model and task must be the ones that were trained
-            if OmegaConf.to_container(saved[key]) != OmegaConf.to_container(cfg[key]):
-                raise CheckpointError(f"resume: config '{key}' differs from the checkpoint's in {ckpt_path}")
+            before, now = OmegaConf.to_container(saved[key]), OmegaConf.to_container(cfg[key])
+            for free in RESUME_FREE.get(key, ()):
+                before.pop(free, None)
+                now.pop(free, None)
+            if before != now:
+                diff = sorted(k for k in before.keys() | now.keys() if before.get(k) != now.get(k))
+                raise CheckpointError(f"resume: config '{key}' differs from the checkpoint's in {ckpt_path} "
+                                      f"({', '.join(f'{key}.{k}' for k in diff)})")
     a, t = cfg.algo, cfg.train
     tune_allocator()
     torch.manual_seed(cfg.seed)
