@@ -193,10 +193,10 @@ def grid_figure(rows: list[dict], out: Path, time_base: str = "true", mark_every
     return _save(fig, out, dpi=90)
 
 
-def _save(fig, out: Path, dpi: int = 120) -> Path:
+def _save(fig, out: Path, dpi: int = 120, rect=(0, 0, 1, 1)) -> Path:
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.tight_layout()
+    fig.tight_layout(rect=rect)
     fig.savefig(out, dpi=dpi)
     plt.close(fig)
     return out
@@ -342,6 +342,7 @@ def plot_runs(runs: list[Path], out: Path, n_smooth: int = 20) -> Path:
         raise ValueError(f"no known scalars in {', '.join(map(str, runs))} (expected success_rate, loss_critic, ...)")
     fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.6), squeeze=False)
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    several = len(groups) > 1
     for gi, (label, members) in enumerate(groups):
         c = colours[gi % len(colours)]
         for ax, (title, spec) in zip(axes[0], panels, strict=True):
@@ -351,7 +352,9 @@ def plot_runs(runs: list[Path], out: Path, n_smooth: int = 20) -> Path:
                     series = [logs[r][sname] for r in members if sname in logs[r]]
                     k = n_smooth if sname.startswith("loss") else 1
                     x, m, lo, hi = band(series, k)
-                    lab = f"{label}: {name}" if len(spec) > 1 else label
+                    # several runs: colours name the runs (one legend under the figure), line styles the curves
+                    lab = (name if len(spec) > 1 and gi == 0 else None) if several else (
+                        f"{label}: {name}" if len(spec) > 1 else label)
                     ax.plot(x, m, style, color=c, lw=1.3, ms=3, label=lab)
                     if len(series) > 1:
                         ax.fill_between(x, lo, hi, color=c, alpha=0.2, lw=0)
@@ -367,6 +370,13 @@ def plot_runs(runs: list[Path], out: Path, n_smooth: int = 20) -> Path:
             ax.legend(fontsize=7)
     if any(len(m) > 1 for _, m in groups):
         fig.suptitle(f"mean over seeds, band = min-max; losses smoothed over {n_smooth} logged points", fontsize=9)
+    if several:
+        from matplotlib.lines import Line2D
+
+        handles = [Line2D([], [], color=colours[i % len(colours)], lw=2) for i in range(len(groups))]
+        fig.legend(handles, [label for label, _ in groups], loc="lower center", ncol=min(len(groups), 2), fontsize=8,
+                   frameon=False)
+        return _save(fig, out, rect=(0, 0.06 * ((len(groups) + 1) // 2) + 0.02, 1, 1))
     return _save(fig, out)
 
 
