@@ -87,23 +87,14 @@ def update_section(encoders: list[str], reps: int, overrides: list[str] = ()) ->
             for batch in Collector(env, policy, frames_per_batch=1024, total_frames=4096,
                                    auto_register_policy_transforms=False):
                 rb.extend(agent_transitions(batch, KEEP))
-            n = [0]
 
-            def step(n=n, learner=learner, rb=rb):
+            def step(n: int, learner=learner, rb=rb):
+                """Update ``n``: critic-only unless ``n`` is a multiple of policy_delay (then actor + targets too)."""
                 sample = rb.sample()
-                learner.update(sample, n[0])
+                learner.update(sample, n)
                 rb.update_tensordict_priority(sample)
-                n[0] += 1
 
-            def critic_only(n=n, step=step):
-                n[0] = 1  # not a multiple of policy_delay: no actor update
-                step()
-
-            def full(n=n, step=step):
-                n[0] = 0
-                step()
-
-            tc, tf = bm.bench(critic_only, reps), bm.bench(full, reps)
+            tc, tf = bm.bench(lambda: step(1), reps), bm.bench(lambda: step(0), reps)
             label = "lookahead" if lookahead else "paper"
             print(f"  {enc:16s}{label:>8s}{(tc + tf) / 2:18.2f}{tc:13.2f}{tf:11.2f}")
 

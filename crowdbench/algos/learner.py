@@ -31,8 +31,9 @@ class Learner:
     """TD3 / DDPG / SAC learner for ``cfg`` (``algo``, ``encoder``, ``env`` groups)."""
 
     def __init__(self, cfg: DictConfig):
-        a = self.a = cfg.algo
-        self.algo = algo = a.name
+        a = cfg.algo
+        algo = a.name
+        self.policy_delay = a.policy_delay
         v_max = cfg.env.v_max
         self.actor = build_actor(algo, OmegaConf.to_container(cfg.encoder), v_max, squash=a.actor_squash)
         horizon = float(a.critic_lookahead)  # seconds; 0 = the paper's critic
@@ -66,7 +67,7 @@ class Learner:
         self.opt_critic.step()
         sample.set("td_error", per_transition(meta["td_error"].detach(), sample.batch_size[0]))
         out = {"loss_critic": q_loss.item()}
-        if n % self.a.policy_delay == 0:
+        if n % self.policy_delay == 0:
             pi_loss, pi_meta = self.actor_loss(sample)
             self.opt_actor.zero_grad()
             pi_loss.backward()

@@ -352,9 +352,10 @@ def plot_runs(runs: list[Path], out: Path, n_smooth: int = 20) -> Path:
                     series = [logs[r][sname] for r in members if sname in logs[r]]
                     k = n_smooth if sname.startswith("loss") else 1
                     x, m, lo, hi = band(series, k)
-                    # several runs: colours name the runs (one legend under the figure), line styles the curves
-                    lab = (name if len(spec) > 1 and gi == 0 else None) if several else (
-                        f"{label}: {name}" if len(spec) > 1 else label)
+                    if several:  # colours name the runs (one legend under the figure), line styles the curves
+                        lab = name if len(spec) > 1 and gi == 0 else None
+                    else:
+                        lab = f"{label}: {name}" if len(spec) > 1 else label
                     ax.plot(x, m, style, color=c, lw=1.3, ms=3, label=lab)
                     if len(series) > 1:
                         ax.fill_between(x, lo, hi, color=c, alpha=0.2, lw=0)
@@ -370,14 +371,15 @@ def plot_runs(runs: list[Path], out: Path, n_smooth: int = 20) -> Path:
             ax.legend(fontsize=7)
     if any(len(m) > 1 for _, m in groups):
         fig.suptitle(f"mean over seeds, band = min-max; losses smoothed over {n_smooth} logged points", fontsize=9)
+    bottom = 0.0
     if several:
         from matplotlib.lines import Line2D
 
         handles = [Line2D([], [], color=colours[i % len(colours)], lw=2) for i in range(len(groups))]
         fig.legend(handles, [label for label, _ in groups], loc="lower center", ncol=min(len(groups), 2), fontsize=8,
                    frameon=False)
-        return _save(fig, out, rect=(0, 0.06 * ((len(groups) + 1) // 2) + 0.02, 1, 1))
-    return _save(fig, out)
+        bottom = 0.06 * ((len(groups) + 1) // 2) + 0.02  # room for the legend's rows
+    return _save(fig, out, rect=(0, bottom, 1, 1))
 
 
 def plot_command(argv: list[str]) -> Path:
