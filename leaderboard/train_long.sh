@@ -1,22 +1,46 @@
 #!/usr/bin/env bash
-# Longer MP-GatedGCN-RL (TD3) runs in stages, one seed per call, each stage submitted (docs/reproduction.md).
+# Longer TD3 runs in stages, one seed per call, each stage submitted (docs/reproduction.md).
 #
-#   bash leaderboard/train_long.sh SEED          e.g.  bash leaderboard/train_long.sh 1
+#   [ENCODER=gatedgcn|gcn|mlp] [REPLAY=per|uniform] [STAGES=2|1] bash leaderboard/train_long.sh SEED
+#   e.g.  REPLAY=uniform bash leaderboard/train_long.sh 1
 #
 # The rows' recipe (leaderboard/train_rows.sh) at 5x and 12x the rows' budget: stage 1 trains
-# runs/long/gatedgcn_td3_s<SEED> to 143,360 frames and submits gatedgcn_td3_5x_s<SEED>; stage 2
-# resumes the same run to 344,064 frames and submits gatedgcn_td3_12x_s<SEED>. A stage that is
-# already done is skipped, so a call cut off by the end of a session continues where it stopped.
-# Each stage takes ~1-1.5 h (stage 2 ~1.5-2 h) on one core. The replay buffer is not
-# checkpointed: stage 2 starts with an empty buffer (2,000 frames before its first update), and a
-# stage killed mid-way and resumed is valid training but no longer the bit-identical run of the
-# uninterrupted commands.
+# runs/long/<ENCODER>_td3_<TAG>s<SEED> to 143,360 frames and submits <ENCODER>_td3_<TAG>5x_s<SEED>;
+# stage 2 resumes the same run to 344,064 frames and submits <ENCODER>_td3_<TAG>12x_s<SEED>.
+# A stage that is already done is skipped, so a call cut off by the end of a session continues
+# where it stopped. On one core a gatedgcn stage 1 takes ~45-55 min, stage 2 ~70-80 min. The replay
+# buffer is not checkpointed: stage 2 starts with an empty buffer (2,000 frames before its first
+# update), and a stage killed mid-way and resumed is valid training but no longer the bit-identical
+# run of the uninterrupted commands.
+#   ENCODER  default gatedgcn (the *_fast configs, D=32).
+#   REPLAY   default per (the recipe's). uniform adds algo.replay=uniform and TAG=uniform_ to the run
+#            directory, the submission names and the entries: with PER the critic diverges after
+#            ~140-150k frames, with uniform replay it stays bounded (docs/training.md, session 5).
+#   STAGES   default 2; 1 stops after stage 1.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-SEED=${1:?usage: bash leaderboard/train_long.sh SEED}
-RECIPE="algo=td3 encoder=gatedgcn_fast seed=$SEED train.progress_reward=0.1 algo.exploration_sigma=0.3 \
+SEED=${1:?usage: [ENCODER=gatedgcn|gcn|mlp] [REPLAY=per|uniform] [STAGES=2|1] bash leaderboard/train_long.sh SEED}
+ENCODER=${ENCODER:-gatedgcn}
+REPLAY=${REPLAY:-per}
+STAGES=${STAGES:-2}
+case $ENCODER in
+  gatedgcn) row="MP-GatedGCN-RL" ;;
+  gcn) row="GCN-RL" ;;
+  mlp) row="DNN-RL" ;;
+  *) echo "train_long.sh: ENCODER must be gatedgcn, gcn or mlp, got '$ENCODER'" >&2; exit 2 ;;
+esac
+RECIPE="algo=td3 encoder=${ENCODER}_fast seed=$SEED train.progress_reward=0.1 algo.exploration_sigma=0.3 \
 algo.critic_lookahead=0.25 train.probe_every=28672 eval.episodes=250"
-out=runs/long/gatedgcn_td3_s$SEED
+case $REPLAY in
+  per) tag="" label="" ;;
+  uniform) tag="uniform_" label="uniform replay, " RECIPE="$RECIPE algo.replay=uniform" ;;
+  *) echo "train_long.sh: REPLAY must be per or uniform, got '$REPLAY'" >&2; exit 2 ;;
+esac
+case $STAGES in
+  1|2) ;;
+  *) echo "train_long.sh: STAGES must be 1 or 2, got '$STAGES'" >&2; exit 2 ;;
+esac
+out=runs/long/${ENCODER}_td3_${tag}s$SEED
 mkdir -p runs/long
 
 frames_done() {  # frames in the run's checkpoint, 0 if none
@@ -36,8 +60,9 @@ stage() {  # FRAMES NAME LABEL
   fi
   [ -d "leaderboard/submissions/$name" ] && return
   crowdbench submit "$out" --name "$name" --entry "$label" \
-    --notes "trained by leaderboard/train_long.sh $SEED: crowdbench run $RECIPE train.total_frames=$frames out=RUN (stage 2: the same with resume=true on the stage-1 run)"
+    --notes "trained by ENCODER=$ENCODER REPLAY=$REPLAY bash leaderboard/train_long.sh $SEED: crowdbench run $RECIPE train.total_frames=$frames out=RUN (stage 2: the same with resume=true on the stage-1 run)"
 }
 
-stage 143360 "gatedgcn_td3_5x_s$SEED" "MP-GatedGCN-RL (TD3, gatedgcn, 143k frames)"
-stage 344064 "gatedgcn_td3_12x_s$SEED" "MP-GatedGCN-RL (TD3, gatedgcn, 344k frames)"
+stage 143360 "${ENCODER}_td3_${tag}5x_s$SEED" "$row (TD3, $ENCODER, ${label}143k frames)"
+[ "$STAGES" = 1 ] && exit 0
+stage 344064 "${ENCODER}_td3_${tag}12x_s$SEED" "$row (TD3, $ENCODER, ${label}344k frames)"

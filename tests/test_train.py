@@ -133,7 +133,8 @@ def test_n_step_returns_by_hand():
     # TorchRL's TD(0) estimator then bootstraps with gamma^m: r + 0.99^m * V(s_{t+m}) on non-terminal rows
     enc = {"name": "mlp", "dim": 8, "hidden": [8]}
     loss = build_loss("td3", build_actor("td3", enc, 1.0), build_critic(enc), 1, 1.0,
-                      {"policy_noise": 0.2, "noise_clip": 0.5, "loss_function": "l2", "gamma": 0.99})
+                      {"policy_noise": 0.2, "noise_clip": 0.5, "loss_function": "l2", "gamma": 0.99,
+                       "per_weights": False})
     td = TensorDict({"next": {"agents": {"reward": torch.ones(3, 1, 1), "done": torch.zeros(3, 1, 1, dtype=torch.bool),
                                          "terminated": torch.tensor([False, False, True]).view(3, 1, 1),
                                          "state_action_value": torch.full((3, 1, 1), 2.0)}},

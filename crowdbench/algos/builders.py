@@ -84,19 +84,20 @@ def build_loss(algo: str, actor, critic, n_agents: int, v_max: float, a: dict, p
     (six graph constructions per update otherwise). ``actor`` stays the raw-observation module
     for acting; the loss gets a prepared view sharing its parameters."""
     spec = leaf_action_spec(n_agents, v_max)
+    weighted = bool(a["per_weights"])  # reads "priority_weight", shaped like the per-sample loss (Learner.update)
     if prepared and algo != "sac":
         lookahead = getattr(critic.module, "lookahead_dt", 0) > 0  # its target needs the raw next observation
         actor = actor_module(actor.module, prepared=True, carry_raw=lookahead)
         critic = critic_module(critic.module, prepared=True)
     if algo == "td3":
         loss = TD3Loss(actor, critic, action_spec=spec, num_qvalue_nets=2, policy_noise=a["policy_noise"],
-                       noise_clip=a["noise_clip"], loss_function=a["loss_function"], use_prioritized_weights=False)
+                       noise_clip=a["noise_clip"], loss_function=a["loss_function"], use_prioritized_weights=weighted)
     elif algo == "ddpg":
         loss = DDPGLoss(actor, critic, loss_function=a["loss_function"], delay_actor=True, delay_value=True,
-                        use_prioritized_weights=False)
+                        use_prioritized_weights=weighted)
     else:
         loss = SACLoss(actor, critic, num_qvalue_nets=2, loss_function=a["loss_function"], action_spec=spec,
-                       alpha_init=a["alpha_init"], target_entropy="auto", use_prioritized_weights=False)
+                       alpha_init=a["alpha_init"], target_entropy="auto", use_prioritized_weights=weighted)
     keys = {"reward": (GROUP, "reward"), "done": (GROUP, "done"), "terminated": (GROUP, "terminated"),
             "state_action_value": STATE_ACTION_VALUE}
     if algo != "ddpg":  # DDPGLoss takes the action key from the actor's out_keys

@@ -34,6 +34,13 @@ class Learner:
         a = cfg.algo
         algo = a.name
         self.policy_delay = a.policy_delay
+        # PER samples transition i with probability P(i) ~ priority_i^alpha, which biases the expected
+        # update towards high-error transitions; the weights w_i = (P(i) / min_j P(j))^-beta (TorchRL's
+        # sampler) undo that bias (Schaul et al. 2016). TorchRL's losses average a weighted loss as
+        # sum(w l) / sum(w). Off by default: the paper's Algorithm 1 and every shipped run use none.
+        self.per_weights = bool(a.per_weights)
+        if self.per_weights and a.replay != "prioritized":
+            raise ValueError(f"algo.per_weights=true needs algo.replay=prioritized, got {a.replay}")
         v_max = cfg.env.v_max
         self.actor = build_actor(algo, OmegaConf.to_container(cfg.encoder), v_max, squash=a.actor_squash)
         horizon = float(a.critic_lookahead)  # seconds; 0 = the paper's critic
@@ -61,6 +68,8 @@ class Learner:
         every ``policy_delay`` steps. Writes the new priorities to ``sample["td_error"]``."""
         if self.prepared:
             prepare_batch(sample, *self.encoders)
+        if self.per_weights:  # the buffer's [n] weights, shaped like the per-agent losses [n, 1]
+            sample.set("priority_weight", sample["priority_weight"].reshape(sample.batch_size[0], 1))
         q_loss, meta = self.critic_loss(sample)
         self.opt_critic.zero_grad()
         q_loss.backward()

@@ -36,9 +36,9 @@ EPISODE_RETURN = (GROUP, "episode_reward")
 KEEP = [(GROUP, "observation"), (GROUP, "action"), ("next", GROUP, "observation"), ("next", GROUP, "reward"),
         ("next", GROUP, "done"), ("next", GROUP, "terminated")]
 MODEL_KEYS = ("algo", "encoder", "env")
-# keys a resumed run may change: the replay buffer is not checkpointed, so its kind is free
-# (e.g. continue a prioritized run with uniform replay: docs/training.md, session 5)
-RESUME_FREE = {"algo": ("replay", "per_alpha", "per_beta")}
+# keys a resumed run may change: the replay buffer is not checkpointed, so its kind (and whether the
+# losses correct for its sampling) is free, e.g. continue a prioritized run with uniform replay (docs/training.md)
+RESUME_FREE = {"algo": ("replay", "per_alpha", "per_beta", "per_weights")}
 
 
 def make_buffer(a: DictConfig, generator: torch.Generator):
