@@ -13,7 +13,8 @@ checkpoint (``torch.load(..., weights_only=True)``). Field reference: docs/submi
 
 Cache: ``results.json`` records a fingerprint of everything its numbers depend on (the
 submission's files, the encoder module named by ``encoder_import``, the protocol episode
-lists, the evaluation options and the simulator / model / baseline / eval source files);
+lists, the evaluation options and the source of every crowdbench module an evaluation runs:
+``code_files``);
 a submission whose fingerprint is unchanged is not re-evaluated unless ``--force``.
 ``--check`` always re-evaluates everything, writes nothing, and fails if the committed
 README differs from the fresh one.
@@ -22,6 +23,7 @@ README differs from the fresh one.
 from __future__ import annotations
 
 import argparse
+import ast
 import hashlib
 import importlib
 import json
@@ -47,8 +49,10 @@ HARNESS_VERSION = 1
 KINDS = ("baseline", "learned", "oracle")
 BASELINE_POLICIES = ("orca", "straight")
 ALGOS = ("td3", "ddpg", "sac")
-# source files whose change invalidates cached results
-CODE_FILES = ("envs", "baselines", "models", "algos", "data/scenes.py", "eval.py")
+# what evaluating a submission runs: the policy builders and the evaluation loop; every crowdbench
+# module these import (at any depth) is hashed into the cache fingerprint (code_files)
+EVAL_MODULES = ("crowdbench.eval", "crowdbench.algos.checkpoint", "crowdbench.models", "crowdbench.baselines.oracle",
+                "crowdbench.baselines.orca", "crowdbench.baselines.straight")
 OUTCOME_CHAR = {"success": "S", "collision": "C", "timeout": "T"}
 EXTRA_SCENES = tuple(s for s in EVAL_SCENES if s not in PAPER_SCENES)
 
@@ -342,6 +346,38 @@ def _sha(h, path: Path) -> None:
     h.update(path.read_bytes())
 
 
+def _module_file(name: str) -> Path | None:
+    """``crowdbench.a.b`` -> its source file; None for a name that is not a module (an imported attribute)."""
+    base = REPO_DIR.joinpath(*name.split("."))
+    if (base / "__init__.py").is_file():
+        return base / "__init__.py"
+    return base.with_suffix(".py") if base.with_suffix(".py").is_file() else None
+
+
+def code_files(roots=EVAL_MODULES) -> list[Path]:
+    """Source files of ``roots`` and of every crowdbench module they import, directly or not, with
+    the packages' ``__init__.py`` (read statically with ``ast``, including imports inside functions).
+
+    Why not all of ``crowdbench/``: training code (algos/train.py, learner.py) never runs in an
+    evaluation, and hashing it made every training change mark all cached results stale.
+    tests/test_leaderboard.py checks that every module an evaluation loads is in this list."""
+    seen: set[Path] = set()
+    todo = list(roots)
+    while todo:
+        parts = todo.pop().split(".")
+        for i in range(1, len(parts) + 1):  # importing a.b.c runs a and a.b first
+            path = _module_file(".".join(parts[:i]))
+            if path is None or path in seen:
+                continue
+            seen.add(path)
+            for node in ast.walk(ast.parse(path.read_text(), str(path))):
+                if isinstance(node, ast.ImportFrom) and node.level == 0 and (node.module or "").startswith("crowdbench"):
+                    todo += [node.module, *(f"{node.module}.{a.name}" for a in node.names)]
+                elif isinstance(node, ast.Import):
+                    todo += [a.name for a in node.names if a.name.startswith("crowdbench")]
+    return sorted(seen)
+
+
 def fingerprint(sub: Submission, scenes: list[str], episodes: int | None) -> str:
     h = hashlib.sha256()
     h.update(json.dumps({"harness": HARNESS_VERSION, "protocol": PROTOCOL_VERSION, "scenes": scenes,
@@ -352,10 +388,8 @@ def fingerprint(sub: Submission, scenes: list[str], episodes: int | None) -> str
         _sha(h, p)
     for s in scenes:
         _sha(h, PROTOCOL_DIR / f"{s}.json")
-    for rel in CODE_FILES:
-        p = PACKAGE_DIR / rel
-        for f in sorted(p.rglob("*.py")) if p.is_dir() else [p]:
-            _sha(h, f)
+    for f in code_files():
+        _sha(h, f)
     return h.hexdigest()
 
 

@@ -231,3 +231,30 @@ def test_submit_a_run(tmp_path, capsys):
     assert "| Mine | 1 |" in (root / "README.md").read_text()
     assert cli_main(["submit", str(run_dir), "--name", "mine_s4", "--entry", "Mine", "--root", str(root)]) == 2
     assert "already exists" in capsys.readouterr().err
+
+
+def test_fingerprint_covers_every_module_an_evaluation_loads(tmp_path):
+    """Evaluate one submission of each kind in a fresh interpreter; every crowdbench module it
+    loaded must be hashed into the cache fingerprint (else a change to it would leave stale numbers
+    cached). The harness itself is versioned by HARNESS_VERSION instead."""
+    import json
+    import subprocess
+    import sys
+
+    from crowdbench.leaderboard import PACKAGE_DIR, code_files
+
+    root = tmp_path / "lb"
+    add_straight(root)
+    add_toy(root)
+    write_yaml(root, "orca", "name: orca\nkind: baseline\nentry: ORCA\npolicy: orca\nauthors: [a]\n")
+    write_yaml(root, "oracle", "name: oracle\nkind: oracle\nentry: Oracle\nprivileged: true\nauthors: [a]\n")
+    script = ("import json, sys; from crowdbench.leaderboard import run; "
+              f"assert run({str(root)!r}, episodes=1, scenes=['hotel'], log=lambda m: None) == 0; "
+              "print(json.dumps(sorted(m.__file__ for n, m in sys.modules.items() "
+              "if n.startswith('crowdbench') and getattr(m, '__file__', None))))")
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True)
+    loaded = {Path(f).resolve() for f in json.loads(out.stdout.splitlines()[-1])}
+    assert {PACKAGE_DIR / "algos" / "builders.py", PACKAGE_DIR / "baselines" / "oracle.py"} <= loaded
+    hashed = set(code_files())
+    assert loaded - hashed == {PACKAGE_DIR / "leaderboard.py"}
+    assert PACKAGE_DIR / "algos" / "train.py" not in hashed  # training code does not invalidate results
