@@ -320,6 +320,32 @@ def test_gradients_reach_every_parameter(real_obs, name):
 
 
 @pytest.mark.parametrize("name", list(ENCODERS))
+def test_acting_after_a_fused_adam_step_uses_the_new_weights(real_obs, name):
+    """The training actor acts (no_grad, train mode) between optimiser steps: its actions must be
+    those of a fresh network holding the updated weights. Fused Adam updates parameters in place
+    without bumping their versions, so a cache keyed on versions served the first weights forever."""
+    torch.manual_seed(0)
+    actor = Actor(make_encoder(name, **SMALL[name]), hidden=[16])
+    opt = torch.optim.Adam(actor.parameters(), lr=0.05, fused=True)
+    with torch.no_grad():
+        before = actor(*obs_args(real_obs))
+    for _ in range(3):
+        opt.zero_grad()
+        actor(*obs_args(real_obs)).sum().backward()
+        opt.step()
+    fresh = Actor(make_encoder(name, **SMALL[name]), hidden=[16])
+    fresh.load_state_dict(actor.state_dict())
+    with torch.no_grad():
+        after, expected = actor(*obs_args(real_obs)), fresh(*obs_args(real_obs))
+        assert (after - before).abs().max() > 1e-3  # the steps changed the policy
+        torch.testing.assert_close(after, expected, rtol=0, atol=0)
+        # eval mode (an evaluated checkpoint) caches layer 1 and gives the same actions
+        fresh.eval()
+        torch.testing.assert_close(fresh(*obs_args(real_obs)), expected, rtol=0, atol=0)
+        torch.testing.assert_close(fresh(*obs_args(real_obs)), expected, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("name", list(ENCODERS))
 def test_heads_shapes_and_bounds_with_several_agents(real_obs, name):
     o = {k: torch.cat((v, v.flip(0)), 1) for k, v in real_obs.items()}  # A = 2
     actor = Actor(make_encoder(name, **SMALL[name]), v_max=0.7)

@@ -156,14 +156,17 @@ class GraphEncoder(nn.Module):
         return torch.cat([m.weight for m in embs] + [bias], 1)
 
     def folded(self):
-        """Layer 1's folded weights (``self.layers[0].fold``). Recomputed on every call when
-        gradients are enabled (training); cached, keyed on the parameters' identities and
-        versions, when they are not (acting, target networks): about 20 small ops less per
-        call, which matters at B = 1. Never cached under ``torch.func`` transforms."""
+        """Layer 1's folded weights (``self.layers[0].fold``). Cached only for a module in eval
+        mode without gradients (an evaluated policy: ``policy_from_checkpoint`` sets eval mode),
+        keyed on the parameters' identities and versions: about 20 small ops less per call, which
+        matters at B = 1. Recomputed on every call otherwise: in training the parameters change
+        in place under optimisers that do not bump tensor versions (fused Adam does not), so a
+        version key would serve the first weights forever (until session 6 the training actor
+        acted with its initial layer 1: docs/training.md). Never cached under ``torch.func``."""
         def compute():
             return self.layers[0].fold(self.embedding_matrix(), self.edge_emb)
 
-        if torch.is_grad_enabled():
+        if self.training or torch.is_grad_enabled():
             return compute()
         mods = (self.robot_emb, self.human_emb, self.goal_emb, self.edge_emb, *self.layers[0].children())
         params = [p for m in mods if m is not None for p in m._parameters.values()]
