@@ -34,7 +34,11 @@ train_row() {
   IFS='|' read -r name entry overrides <<<"$1"
   out=runs/leaderboard/$name
   # shellcheck disable=SC2086
-  OMP_NUM_THREADS=1 RL_WARNINGS=False crowdbench run $overrides $RECIPE out="$out" >"$out.log" 2>&1
+  # the previous submission is replaced only by a finished run (xargs' bash has no set -e)
+  if ! OMP_NUM_THREADS=1 RL_WARNINGS=False crowdbench run $overrides $RECIPE out="$out" >"$out.log" 2>&1; then
+    echo "train_rows.sh: $name failed, see $out.log; leaderboard/submissions/$name left as it was" >&2
+    return 1
+  fi
   rm -rf "leaderboard/submissions/$name"
   crowdbench submit "$out" --name "$name" --entry "$entry" \
     --notes "trained by leaderboard/train_rows.sh: crowdbench run $overrides $RECIPE"
