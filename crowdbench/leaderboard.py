@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import functools
 import hashlib
 import importlib
 import json
@@ -354,7 +355,8 @@ def _module_file(name: str) -> Path | None:
     return base.with_suffix(".py") if base.with_suffix(".py").is_file() else None
 
 
-def code_files(roots=EVAL_MODULES) -> list[Path]:
+@functools.cache  # one walk per process, not one per submission (~50 ms each)
+def code_files(roots=EVAL_MODULES) -> tuple[Path, ...]:
     """Source files of ``roots`` and of every crowdbench module they import, directly or not, with
     the packages' ``__init__.py`` (read statically with ``ast``, including imports inside functions).
 
@@ -375,7 +377,7 @@ def code_files(roots=EVAL_MODULES) -> list[Path]:
                     todo += [node.module, *(f"{node.module}.{a.name}" for a in node.names)]
                 elif isinstance(node, ast.Import):
                     todo += [a.name for a in node.names if a.name.startswith("crowdbench")]
-    return sorted(seen)
+    return tuple(sorted(seen))
 
 
 def fingerprint(sub: Submission, scenes: list[str], episodes: int | None) -> str:
