@@ -14,8 +14,8 @@
 # run of the uninterrupted commands.
 #   ENCODER  default gatedgcn (the *_fast configs, D=32).
 #   REPLAY   default per (the recipe's). uniform adds algo.replay=uniform and TAG=uniform_ to the run
-#            directory, the submission names and the entries (143k frames: 0.942 over 2 seeds against
-#            0.905 with PER, one seed; docs/training.md, session 6).
+#            directory, the submission names and the entries (143k frames: 0.932 over 3 seeds against
+#            0.905 with PER, one seed; docs/training.md, sessions 6-7).
 #   STAGES   default 2; 1 stops after stage 1.
 set -euo pipefail
 cd "$(dirname "$0")/.."
