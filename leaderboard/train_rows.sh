@@ -33,6 +33,7 @@ rows() {  # name | entry label | overrides   (longest first: better packing over
 train_row() {
   IFS='|' read -r name entry overrides <<<"$1"
   out=runs/leaderboard/$name
+  rm -rf "$out"  # a row is retrained from scratch (crowdbench run refuses to overwrite a saved run)
   # shellcheck disable=SC2086
   # the previous submission is replaced only by a finished run (xargs' bash has no set -e)
   if ! OMP_NUM_THREADS=1 RL_WARNINGS=False crowdbench run $overrides $RECIPE out="$out" >"$out.log" 2>&1; then

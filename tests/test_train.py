@@ -53,6 +53,16 @@ def test_resume_continues_counter_and_log(tmp_path):
     assert log[-1][1] > first[-1][1]  # updates keep counting from the checkpoint
 
 
+def test_a_fresh_run_never_overwrites_a_saved_one(tmp_path):
+    base = ["algo=td3", "encoder=gcn", *TINY, *SMALL_ENCODER["gcn"]]
+    train(compose([*base, "train.total_frames=256"]), tmp_path, progress=False)
+    saved = (tmp_path / "checkpoint.pt").read_bytes()
+    log = read_log(tmp_path, "updates")
+    with pytest.raises(CheckpointError, match="already holds a training run .*resume=true"):
+        train(compose([*base, "train.total_frames=512"]), tmp_path, progress=False)
+    assert (tmp_path / "checkpoint.pt").read_bytes() == saved and read_log(tmp_path, "updates") == log
+
+
 def test_resume_checks_the_config(tmp_path):
     """A resumed run must keep the model and task; the replay buffer (not checkpointed) may change kind."""
     base = ["algo=td3", "encoder=gcn", *TINY, *SMALL_ENCODER["gcn"]]

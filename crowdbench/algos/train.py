@@ -91,6 +91,9 @@ def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool =
     out_dir.mkdir(parents=True, exist_ok=True)
     ckpt_path = out_dir / "checkpoint.pt"
     state = None
+    if not resume and ckpt_path.exists():  # a fresh run would overwrite it and append to its logs
+        raise CheckpointError(f"{out_dir} already holds a training run ({ckpt_path.name}); "
+                              "pass resume=true to continue it, or choose another out=")
     if resume:
         state = load_checkpoint(ckpt_path)
         saved = OmegaConf.create(state["config"])
