@@ -18,6 +18,7 @@ TINY = ["env.batch=8", "train.frames_per_batch=64", "algo.warmup=128", "algo.bat
         "train.checkpoint_every=128"]
 SMALL_ENCODER = {"gatedgcn": ["encoder.dim=16"], "gcn": ["encoder.dim=16"], "mlp": ["encoder.dim=16",
                                                                                     "encoder.hidden=[32]"]}
+SMALL_GCN_TD3 = ["algo=td3", "encoder=gcn", *TINY, *SMALL_ENCODER["gcn"]]  # the resume / overwrite tests' run
 
 
 def read_log(run, name):
@@ -41,7 +42,7 @@ def test_each_algo_encoder_trains_and_checkpoints(algo, encoder, tmp_path):
 
 
 def test_resume_continues_counter_and_log(tmp_path):
-    base = ["algo=td3", "encoder=gcn", *TINY, *SMALL_ENCODER["gcn"]]
+    base = SMALL_GCN_TD3
     train(compose([*base, "train.total_frames=256"]), tmp_path, progress=False)
     first = read_log(tmp_path, "updates")
     stats = train(compose([*base, "train.total_frames=512"]), tmp_path, resume=True, progress=False)
@@ -54,7 +55,7 @@ def test_resume_continues_counter_and_log(tmp_path):
 
 
 def test_a_fresh_run_never_overwrites_a_saved_one(tmp_path):
-    base = ["algo=td3", "encoder=gcn", *TINY, *SMALL_ENCODER["gcn"]]
+    base = SMALL_GCN_TD3
     train(compose([*base, "train.total_frames=256"]), tmp_path, progress=False)
     saved = (tmp_path / "checkpoint.pt").read_bytes()
     log = read_log(tmp_path, "updates")
@@ -65,7 +66,7 @@ def test_a_fresh_run_never_overwrites_a_saved_one(tmp_path):
 
 def test_resume_checks_the_config(tmp_path):
     """A resumed run must keep the model and task; the replay buffer (not checkpointed) may change kind."""
-    base = ["algo=td3", "encoder=gcn", *TINY, *SMALL_ENCODER["gcn"]]
+    base = SMALL_GCN_TD3
     train(compose([*base, "train.total_frames=256"]), tmp_path, progress=False)
     with pytest.raises(CheckpointError, match=r"config 'encoder' differs .*\(encoder\.dim\)"):
         train(compose([*base, "train.total_frames=512", "encoder.dim=8"]), tmp_path, resume=True, progress=False)
