@@ -47,7 +47,7 @@ from crowdbench.models.heads import (
 )
 from crowdbench.models.perf import tune_allocator
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "encoder"
+CONFIGS = Path(__file__).resolve().parents[1] / "crowdbench" / "conf" / "encoder"
 
 
 def bench(fn, reps: int, warm: int = 3) -> float:

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from crowdbench.envs.core import SimConfig
 
-CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
+CONFIG_DIR = Path(__file__).resolve().parent / "conf"
 COMMANDS = ("eval", "run", "leaderboard", "submit", "viz", "plot")
 BASELINES = ("orca", "straight", "oracle")
 

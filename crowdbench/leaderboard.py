@@ -44,8 +44,8 @@ from crowdbench.eval import evaluate, rate_ci
 
 PACKAGE_DIR = Path(__file__).resolve().parent
 REPO_DIR = PACKAGE_DIR.parent
-DEFAULT_ROOT = REPO_DIR / "leaderboard"
-CONFIG_FILE = REPO_DIR / "configs" / "config.yaml"
+DEFAULT_ROOT = Path("leaderboard")  # of the current directory; --root DIR chooses another
+CONFIG_FILE = PACKAGE_DIR / "conf" / "config.yaml"
 HARNESS_VERSION = 1
 KINDS = ("baseline", "learned", "oracle")
 BASELINE_POLICIES = ("orca", "straight")

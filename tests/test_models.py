@@ -26,7 +26,7 @@ from crowdbench.models.heads import (
     prepare_batch,
 )
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "encoder"
+CONFIGS = Path(__file__).resolve().parents[1] / "crowdbench" / "conf" / "encoder"
 SMALL = {"gatedgcn": {"dim": 16}, "gcn": {"dim": 16}, "mlp": {"dim": 16, "hidden": [32]}}
 
 
