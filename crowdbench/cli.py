@@ -18,8 +18,14 @@ class UsageError(Exception):
     """Bad input from the user: printed as one line, exit code 2."""
 
 
+def normalise(overrides: list[str]) -> list[str]:
+    """``+experiment=X`` / ``+method=X`` mean ``experiment=X`` / ``method=X``: both groups are in the
+    defaults list (as null), where Hydra's append syntax would be an error."""
+    return [o[1:] if o.startswith(("+experiment=", "+method=")) else o for o in overrides]
+
+
 def compose(overrides: list[str]):
-    """Compose ``configs/config.yaml`` with Hydra overrides; struct mode rejects unknown keys."""
+    """Compose ``conf/config.yaml`` with Hydra overrides; struct mode rejects unknown keys."""
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
     from hydra.errors import HydraException
@@ -29,7 +35,7 @@ def compose(overrides: list[str]):
         raise UsageError(f"config directory not found: {CONFIG_DIR} (install with pip install -e .)")
     try:
         with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base=None):
-            cfg = hydra_compose(config_name="config", overrides=overrides)
+            cfg = hydra_compose(config_name="config", overrides=normalise(overrides))
     except HydraException as e:
         raise UsageError(_hydra_message(e, overrides)) from None
     OmegaConf.set_struct(cfg, True)
@@ -215,11 +221,26 @@ def make_probe(cfg):
 
 
 def cmd_run(overrides: list[str]) -> int:
-    """Train on the training scene, checkpoint periodically, then evaluate on the protocol."""
+    """Train on the training scene, checkpoint periodically, then evaluate on the protocol; with
+    ``-m`` / ``--multirun``, a Hydra sweep of such runs (crowdbench/sweep.py)."""
+    if {"-m", "--multirun"} & set(overrides):
+        from crowdbench.sweep import multirun
+
+        return multirun([o for o in overrides if o not in ("-m", "--multirun")])
+    run_one(compose(overrides), overrides)
+    return 0
+
+
+def run_one(cfg, overrides: list[str]) -> dict:
+    """One training run of ``cfg`` into ``cfg.out`` (or a new ``outputs/run-...``), then its evaluation."""
+    import torch
+
     from crowdbench.algos.checkpoint import policy_from_checkpoint
     from crowdbench.algos.train import train
 
-    cfg = compose(overrides)
+    if not isinstance(cfg.cpus, int) or cfg.cpus < 1:
+        raise UsageError(f"cpus must be a positive integer, got {cfg.cpus!r}")
+    torch.set_num_threads(cfg.cpus)
     eval_options(cfg)
     check_viz(cfg)
     if cfg.resume and not cfg.out:
@@ -237,8 +258,7 @@ def cmd_run(overrides: list[str]) -> int:
         raise UsageError(str(e)) from None
     from crowdbench.envs.factory import is_selfplay
 
-    (run_selfplay_eval if is_selfplay(cfg.env) else run_eval)(policy, cfg, out, overrides)
-    return 0
+    return (run_selfplay_eval if is_selfplay(cfg.env) else run_eval)(policy, cfg, out, overrides)
 
 
 def cmd_leaderboard(args: list[str]) -> int:

@@ -80,6 +80,45 @@ def truncate_log(log_dir: Path, frames: int) -> None:
         f.write_text("".join(f"{r[0]},{r[1]}\n" for r in rows))
 
 
+class DurationEstimate:
+    """Prints the run's budget, then, after the second batch with updates, its expected duration:
+    measured seconds per collected frame and per update x what remains of each. Timing only: no RNG."""
+
+    def __init__(self, frames: int, utd: float, warmup: int, write):
+        self.frames, self.utd, self.write = frames, utd, write
+        self.updates = max(0, int(utd * (frames - warmup)))
+        self.frame_s = self.update_s = 0.0
+        self.seen = self.n_frames = self.n_updates = self.update_batches = 0
+        self.done = False
+        self.t = time.perf_counter()
+        write(f"budget: {frames:,} frames, ~{self.updates:,} updates (the expected duration follows the first updates)")
+
+    def collected(self, n: int) -> None:
+        now = time.perf_counter()
+        if self.update_batches:  # warm-up acts at random, faster than the policy: not timed
+            self.frame_s += now - self.t
+            self.n_frames += n
+        self.seen += n
+        self.t = now
+
+    def updated(self, n: int) -> None:
+        now = time.perf_counter()
+        self.update_s += now - self.t
+        self.n_updates += n
+        self.update_batches += 1
+        self.t = now
+        if self.update_batches == 2 and not self.done:  # the first batch pays one-off allocations
+            self.done = True
+            per_frame, per_update = self.frame_s / self.n_frames, self.update_s / self.n_updates
+            left = (self.frames - self.seen) * per_frame + max(0, self.updates - self.n_updates) * per_update
+            self.write(f"expected duration: ~{left / 60:.0f} min more ({1 / per_frame:,.0f} frames/s collecting, "
+                       f"{1 / per_update:,.1f} updates/s on {torch.get_num_threads()} thread(s)), "
+                       "plus the final evaluation")
+
+    def lap(self) -> None:
+        self.collected(0)
+
+
 def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool = True, probe=None) -> dict:
     """Train per ``cfg`` into ``out_dir`` (``checkpoint.pt``, ``logs/``); return final stats.
 
@@ -149,11 +188,13 @@ def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool =
         })
 
     bar = tqdm(total=t.total_frames, initial=frames, disable=not progress, unit="frame", dynamic_ncols=True)
+    eta = DurationEstimate(remaining, t.utd, a.warmup, bar.write)  # a resumed run refills warm-up frames too
     last_ckpt, last_probe, start = frames, frames, time.time()
     elapsed0 = float(state.get("wall_time_s", 0.0)) if state is not None else 0.0
     window: list[tuple[int, float]] = []  # (outcome, return) of recently finished episodes
     stats: dict = {}
     for batch in collector:
+        eta.collected(batch.numel())
         frames += batch.numel()
         outcome, ret = finished_episodes(batch, EPISODE_RETURN)  # per agent episode
         window = (window + list(zip(outcome, ret, strict=True)))[-t.stats_window:]
@@ -163,12 +204,14 @@ def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool =
 
         logs: dict[str, float] = {}
         if len(rb) >= a.warmup:
-            for _ in range(max(1, int(t.utd * batch.numel()))):
+            n_updates = max(1, int(t.utd * batch.numel()))
+            for _ in range(n_updates):
                 sample = rb.sample()
                 logs.update(learner.update(sample, updates))
                 updates += 1
                 if a.replay == "prioritized":
                     rb.update_tensordict_priority(sample)
+            eta.updated(n_updates)
 
         if window:
             stats = {
@@ -182,6 +225,7 @@ def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool =
         if probe is not None and frames - last_probe >= t.probe_every:
             logs.update(probe(actor))
             last_probe = frames
+        eta.lap()  # probes and checkpoints count as part of the next batch's collection time
         for k, v in logs.items():
             logger.log_scalar(k, v, step=frames)
         bar.update(batch.numel())
