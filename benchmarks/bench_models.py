@@ -113,9 +113,9 @@ def encoder_section(o, reps, quick):
     print("\n## encoder forward + backward, batch 100 (ms): graph built inside | graph prepared")
     rows = [
         ("gatedgcn (paper, D=256)", preset("gatedgcn"), {}),
-        ("gatedgcn_fast (D=32)", preset("gatedgcn_fast"), {}),
-        ("gatedgcn D=64", preset("gatedgcn_fast"), {"dim": 64}),
-        ("gatedgcn_fast, full layout", preset("gatedgcn_fast"), {"receptive_field": False}),
+        ("gatedgcn (D=32)", preset("gatedgcn"), {}),
+        ("gatedgcn D=64", preset("gatedgcn"), {"dim": 64}),
+        ("gatedgcn (D=32), full layout", preset("gatedgcn"), {"receptive_field": False}),
         ("gatedgcn paper, full layout", preset("gatedgcn"), {"receptive_field": False}),
         ("gcn (D=256)", preset("gcn"), {}),
         ("gcn D=32", preset("gcn"), {"dim": 32}),
@@ -234,13 +234,13 @@ def td3_torchrl(name_cfg, o, a, info, o2, deactivate_vmap):
 
 
 def td3_section(o, a, info, o2, reps, quick):
-    print("\n## one TD3 update, batch 100 (ms) — target <= 30 ms for gatedgcn_fast")
+    print("\n## one TD3 update, batch 100 (ms) — target <= 30 ms for gatedgcn (D=32)")
     print("   hand-written: graph prepared once per batch and shared by the 6 networks, target actor")
     print("   + 2 target critics, 2 critics fwd/bwd, actor fwd/bwd through critic 1, fused Adam,")
     print("   Polyak. 'delay 2': mean of a critic-only and a full step (TD3 policy delay d = 2).")
     print("   'stored': graphs prepared at collection time and kept in the replay buffer.")
     print("   TD3Loss: TorchRL's loss with the prepared modules (vmapped critics / deactivate_vmap).")
-    cfgs = [("gatedgcn_fast (D=32)", preset("gatedgcn_fast")), ("gatedgcn D=64", {**preset("gatedgcn_fast"), "dim": 64})]
+    cfgs = [("gatedgcn (D=32)", preset("gatedgcn")), ("gatedgcn D=64", {**preset("gatedgcn"), "dim": 64})]
     if not quick:
         cfgs += [
             ("gcn D=32", {**preset("gcn"), "dim": 32}),
@@ -270,14 +270,14 @@ def latency_section(reps, rounds: int = 5):
     one = {k: v[i : i + 1] for k, v in o.items()}
     print(f"  observation with {int(one['humans_mask'].sum())} observed humans (M = {one['humans'].shape[-2]})")
     models = {
-        "gatedgcn_fast": preset("gatedgcn_fast"),
+        "gatedgcn (D=32)": preset("gatedgcn"),
         "gatedgcn paper": preset("gatedgcn"),
         "gcn": preset("gcn"),
         "mlp": preset("mlp"),
     }
     actors = {k: Actor(make_encoder(**cfg)).eval() for k, cfg in models.items()}
     obs = (one["robot"], one["humans"], one["humans_mask"])
-    actors["gatedgcn_fast traced"] = trace_for_inference(actors["gatedgcn_fast"], *obs)
+    actors["gatedgcn (D=32) traced"] = trace_for_inference(actors["gatedgcn (D=32)"], *obs)
     actors["gatedgcn paper traced"] = trace_for_inference(actors["gatedgcn paper"], *obs)
     times: dict = {k: [] for k in actors}
     for _ in range(rounds):

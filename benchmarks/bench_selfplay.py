@@ -86,7 +86,7 @@ def main() -> None:
             rows = [("batched core (observe + step)", core_rate(cfg, B, args.seconds)),
                     ("TorchRL SelfPlayEnv", torchrl_rate(cfg, B, args.seconds))]
             if not bg:
-                rows.append(("TorchRL + shared gatedgcn_fast actor", torchrl_rate(cfg, B, args.seconds, actor)))
+                rows.append(("TorchRL + shared gatedgcn (D=32) actor", torchrl_rate(cfg, B, args.seconds, actor)))
             for name, r in rows:
                 print(f"| {name} | {n} | {bg or 'none'} | {r:,.0f} | {r * n:,.0f} | {B / r * 1e3:.2f} |")
 

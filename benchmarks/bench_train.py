@@ -73,7 +73,7 @@ def update_section(encoders: list[str], reps: int, overrides: list[str] = ()) ->
     from crowdbench.envs.factory import make_env
 
     print("\n## one training update as `crowdbench run` makes it, batch 100 from a PER buffer of 4,096 students001"
-          " transitions (ms) — target <= 30 ms for gatedgcn_fast"
+          " transitions (ms) — target <= 30 ms for gatedgcn (D=32)"
           + (f"; {' '.join(overrides)}" if overrides else ""))
     print(f"  {'encoder':16s}{'critic':>8s}{'per update (d=2)':>18s}{'critic-only':>13s}{'full step':>11s}")
     for enc in encoders:
@@ -105,7 +105,7 @@ def main(argv=None):
     ap.add_argument("--reps", type=int, default=20)
     ap.add_argument("--sections", default="latency,td3,update,loop")
     ap.add_argument("--loop-frames", type=int, default=4096)
-    ap.add_argument("--encoders", default="gatedgcn_fast,gcn_fast,mlp_fast")
+    ap.add_argument("--encoders", default="gatedgcn,gcn,mlp")
     ap.add_argument("--overrides", default="", help="extra training overrides for the loop, e.g. "
                     "'algo.critic_lookahead=1.0 algo.n_steps=5'")
     args = ap.parse_args(argv)

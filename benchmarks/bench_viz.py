@@ -2,7 +2,7 @@
 
 Usage: python benchmarks/bench_viz.py [--threads 1] [--episodes 250] [--repeats 2] [--scene students003]
 
-The policy is an (untrained) TD3 actor with the ``gatedgcn_fast`` encoder (D = 32), so the
+The policy is an (untrained) TD3 actor with the ``gatedgcn`` encoder (D = 32), so the
 attention path is exercised. ``off`` is ``evaluate(..., recorder_factory=None)`` (the default: no
 recorder object, no viz import); ``on-N`` records N of the evaluated episodes. Each mode runs
 ``--repeats`` times, interleaved; the minimum wall time is reported.
@@ -33,7 +33,7 @@ def main() -> None:
     torch.set_num_threads(a.threads)
     torch.manual_seed(0)
     policy = LearnedPolicy(build_actor("td3", {"name": "gatedgcn", "dim": 32, "layers": 2, "k": 8}, 1.0),
-                           name="td3-gatedgcn_fast-untrained")
+                           name="td3-gatedgcn-untrained")
     from crowdbench.envs.protocol import load_episodes
     from crowdbench.eval import select_episodes
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 import sys
 import time
@@ -283,30 +284,79 @@ def training_overrides(cfg: dict) -> list[str]:
 
 
 def cmd_submit(args: list[str]) -> int:
-    """Turn a training run into a leaderboard submission (slim checkpoint + submission.yaml)."""
+    """Turn a training run, or every finished run of a sweep, into leaderboard submissions (slim
+    checkpoint + submission.yaml)."""
     import argparse
 
-    from crowdbench.algos.checkpoint import CheckpointError, load_checkpoint
-    from crowdbench.leaderboard import DEFAULT_ROOT, SubmissionError, make_submission
+    from crowdbench.leaderboard import DEFAULT_ROOT
 
     ap = argparse.ArgumentParser(prog="crowdbench submit",
-                                 description="Make leaderboard/submissions/NAME from a run directory.")
-    ap.add_argument("run", type=Path, help="run directory (holds checkpoint.pt)")
-    ap.add_argument("--name", required=True, help="submission name (directory under submissions/)")
-    ap.add_argument("--entry", required=True, help="row label; seeds of one method share it")
+                                 description="Make leaderboard/submissions/NAME from a run directory, or one "
+                                             "submission per finished run of a sweep directory.")
+    ap.add_argument("run", type=Path, help="run directory (holds checkpoint.pt) or sweep directory (multirun.yaml)")
+    ap.add_argument("--name", default=None, help="submission name (default: the run's submission.name)")
+    ap.add_argument("--entry", default=None, help="row label; seeds of one method share it "
+                                                   "(default: the run's submission.entry, set by method=...)")
     ap.add_argument("--authors", default="crowdbench", help="comma-separated author names")
     ap.add_argument("--link", default=None)
     ap.add_argument("--notes", default=None)
     ap.add_argument("--root", type=Path, default=DEFAULT_ROOT)
     a = ap.parse_args(args)
+    authors = [x.strip() for x in a.authors.split(",") if x.strip()]
+    if not (a.run / "multirun.yaml").is_file():
+        path = submit_run(a.run, a.name, a.entry, authors, a.link, a.notes, a.root, None)
+        print(f"wrote {path}; evaluate it with: crowdbench leaderboard --only {path.name}")
+        return 0
+    if a.name:
+        raise UsageError("submit: --name names one run; the runs of a sweep are named by their config "
+                         "(submission.name, e.g. gatedgcn_td3_s0)")
+    from crowdbench.sweep import STATUS
+
+    runs = sorted((d for d in a.run.iterdir() if d.is_dir() and d.name.isdigit()), key=lambda d: int(d.name))
+    if not runs:
+        raise UsageError(f"submit: {a.run} holds no runs")
+    written, problems = [], 0
+    for d in runs:
+        status = json.loads((d / STATUS).read_text()) if (d / STATUS).is_file() else {}
+        if status.get("status") != "ok":
+            print(f"crowdbench: run {d} did not finish ({status.get('error', 'no status.json')}): not submitted",
+                  file=sys.stderr)
+            problems += 1
+            continue
+        try:
+            written.append(submit_run(d, None, a.entry, authors, a.link, a.notes, a.root, status["overrides"]))
+        except UsageError as e:
+            print(f"crowdbench: error: {e}", file=sys.stderr)
+            problems += 1
+    names = " ".join(p.name for p in written)
+    print(f"wrote {len(written)} submissions under {a.root / 'submissions'}" +
+          (f"; evaluate them with: crowdbench leaderboard --only {names.replace(' ', ',')}" if written else ""))
+    return 1 if problems else 0
+
+
+def submit_run(run: Path, name: str | None, entry: str | None, authors: list[str], link: str | None,
+               notes: str | None, root: Path, overrides: list[str] | None) -> Path:
+    """One run -> ``root/submissions/<name>``; name, row label and experiment default to the run's
+    ``submission.*`` config; ``overrides``: the command-line overrides of a sweep's run (else derived)."""
+    from crowdbench.algos.checkpoint import CheckpointError, load_checkpoint
+    from crowdbench.leaderboard import SubmissionError, make_submission
+
     try:
-        cfg = load_checkpoint(a.run / "checkpoint.pt")["config"]
-        path = make_submission(a.run, a.name, a.entry, [x.strip() for x in a.authors.split(",") if x.strip()],
-                               training_overrides(cfg), a.link, a.notes, a.root)
+        cfg = load_checkpoint(run / "checkpoint.pt")["config"]
+        meta = cfg.get("submission") or {}
+        name, entry = name or meta.get("name"), entry or meta.get("entry")
+        if not name or not entry:
+            missing = "--name" if not name else "--entry"
+            raise UsageError(f"submit: {run} has no submission.{missing[2:]} in its config (train it with "
+                             f"method=... or an experiment), pass {missing}")
+        overrides = list(overrides) if overrides is not None else training_overrides(cfg)
+        if not any(o.startswith("seed=") for o in overrides):
+            overrides.append(f"seed={cfg['seed']}")
+        notes = notes or f"crowdbench run {' '.join(overrides)}"
+        return make_submission(run, name, entry, authors, overrides, link, notes, root,
+                               experiment=meta.get("experiment"))
     except (CheckpointError, SubmissionError, KeyError) as e:
         raise UsageError(f"submit: {e}") from None
-    print(f"wrote {path}; evaluate it with: crowdbench leaderboard --only {a.name}")
-    return 0
 
 
 def main(argv: list[str] | None = None) -> int:

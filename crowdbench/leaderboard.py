@@ -90,6 +90,7 @@ SCHEMA: dict[str, tuple[tuple, tuple, str]] = {
     "encoder_import": ((str,), (), "module:Class of an external encoder, registered under `encoder`"),
     "encoder_entry_points": ((str,), (), "entry-point group to load the encoder from, e.g. crowdbench.encoders"),
     "algo": ((str,), ("learned",), "td3 | ddpg | sac"),
+    "experiment": ((str,), (), "the experiment config the run was trained with (crowdbench/conf/experiment/)"),
     "overrides": ((dict, list), (), "baseline/oracle parameters {key: value}; learned: the training overrides"),
     "authors": ((list, str), KINDS, "list of authors"),
     "link": ((str,), (), "paper or code URL"),
@@ -196,7 +197,8 @@ def read_submission(sub_dir: Path) -> Submission:
 
 
 def make_submission(run_dir: Path, name: str, entry: str, authors: list[str], overrides: list[str],
-                    link: str | None = None, notes: str | None = None, root: Path = DEFAULT_ROOT) -> Path:
+                    link: str | None = None, notes: str | None = None, root: Path = DEFAULT_ROOT,
+                    experiment: str | None = None) -> Path:
     """``leaderboard/submissions/<name>/`` from a training run: a slim checkpoint + submission.yaml.
 
     The checkpoint keeps what evaluation needs (config, actor weights, frames, updates, wall
@@ -213,7 +215,8 @@ def make_submission(run_dir: Path, name: str, entry: str, authors: list[str], ov
     keep = ("config", "actor", "frames", "updates", "wall_time_s")
     save_checkpoint(sub_dir / "checkpoint.pt", {k: state[k] for k in keep if k in state})
     data = {"name": name, "kind": "learned", "entry": entry, "encoder": cfg["encoder"]["name"],
-            "algo": cfg["algo"]["name"], "seed": int(cfg["seed"]), "overrides": overrides, "authors": authors}
+            "algo": cfg["algo"]["name"], "seed": int(cfg["seed"]),
+            **({"experiment": experiment} if experiment else {}), "overrides": overrides, "authors": authors}
     if link:
         data["link"] = link
     if notes:

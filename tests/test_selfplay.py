@@ -214,7 +214,7 @@ def test_selfplay_evaluation_metrics():
 
 def test_run_selfplay_end_to_end_and_transfer(tmp_path, capsys):
     out = tmp_path / "run"
-    rc = main(["run", "env=selfplay", "env.n_agents=4", "algo=td3", "encoder=gatedgcn_fast", *TINY,
+    rc = main(["run", "env=selfplay", "env.n_agents=4", "algo=td3", "encoder=gatedgcn", *TINY,
                "train.total_frames=96", "train.probe_every=100000", f"out={out}"])
     assert rc == 0
     state = load_checkpoint(out / "checkpoint.pt")
@@ -231,7 +231,7 @@ def test_run_selfplay_end_to_end_and_transfer(tmp_path, capsys):
     assert policy.name == "td3-gatedgcn"
 
 
-@pytest.mark.parametrize(("algo", "encoder"), [("sac", "mlp_fast"), ("ddpg", "gcn_fast")])
+@pytest.mark.parametrize(("algo", "encoder"), [("sac", "mlp"), ("ddpg", "gcn")])
 def test_other_algos_and_encoders_train_in_selfplay_and_resume(algo, encoder, tmp_path):
     from crowdbench.algos.train import train
 

@@ -21,7 +21,7 @@ ENCODERS: dict[str, type[nn.Module]] = {
 
 def make_encoder(name: str, **cfg) -> nn.Module:
     """Instantiate the encoder registered as ``name`` with the config ``cfg``
-    (e.g. ``make_encoder(**yaml.safe_load(open("configs/encoder/gatedgcn.yaml")))``)."""
+    (e.g. ``make_encoder(**yaml.safe_load(open("crowdbench/conf/encoder/gatedgcn.yaml")))``)."""
     if name not in ENCODERS:
         raise ValueError(f"unknown encoder {name!r}; valid encoders: {', '.join(sorted(ENCODERS))}")
     return ENCODERS[name](**cfg)

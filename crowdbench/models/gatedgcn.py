@@ -18,8 +18,8 @@ nodes. Node inputs are embedded by three linear maps (robot 6 -> D, human 4 -> D
 Gates are ``D``-channel vectors per edge; for visualisation ``last_gates.values`` is their
 mean over the channels (still summing to ~1 over the robot's incoming edges).
 
-Presets: ``configs/encoder/gatedgcn.yaml`` (paper: D = 256, L = 2) and
-``configs/encoder/gatedgcn_fast.yaml`` (CPU preset, smaller D).
+Preset: ``crowdbench/conf/encoder/gatedgcn.yaml`` (D = 32, L = 2; the paper's D = 256 with
+``experiment=paper`` or ``encoder.dim=256``).
 """
 
 from __future__ import annotations

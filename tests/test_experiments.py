@@ -1,0 +1,107 @@
+"""Named experiments and methods compose, and reproduce the training configs of the shipped rows."""
+
+from __future__ import annotations
+
+import itertools
+from pathlib import Path
+
+import pytest
+import yaml
+from omegaconf import OmegaConf
+
+from crowdbench.algos.checkpoint import load_checkpoint
+from crowdbench.cli import CONFIG_DIR, compose, main
+
+ROOT = Path(__file__).resolve().parents[1]
+SUBMISSIONS = ROOT / "leaderboard" / "submissions"
+EXPERIMENTS = sorted(p.stem for p in (CONFIG_DIR / "experiment").glob("*.yaml"))
+LEARNED = sorted(d.name for d in SUBMISSIONS.iterdir()
+                 if yaml.safe_load((d / "submission.yaml").read_text())["kind"] == "learned")
+TRAINING = ("algo", "encoder", "env", "train")  # what decides the trained weights (with the seed)
+
+
+def training_config(cfg: dict) -> dict:
+    out = {g: dict(cfg[g]) for g in TRAINING}
+    out["train"].pop("max_minutes", None)  # a wall-time cap, not a training setting
+    return {**out, "seed": cfg["seed"]}
+
+
+def sweep_points(name: str) -> list[list[str]]:
+    """Every run of the experiment's ``hydra.sweeper.params`` as override lists (Hydra's basic sweeper
+    takes the cartesian product of the comma-separated values)."""
+    params = (yaml.safe_load((CONFIG_DIR / "experiment" / f"{name}.yaml").read_text()).get("hydra") or {}) \
+        .get("sweeper", {}).get("params", {})
+    axes = [[f"{k}={v}" for v in str(vals).split(",")] for k, vals in params.items()]
+    return [[f"experiment={name}", *point] for point in itertools.product(*axes)]
+
+
+def test_the_three_named_experiments_exist():
+    assert {"paper", "leaderboard", "leaderboard_long"} <= set(EXPERIMENTS)
+
+
+@pytest.mark.parametrize("name", EXPERIMENTS)
+def test_every_run_of_every_experiment_composes(name):
+    points = sweep_points(name)
+    seen = set()
+    for overrides in points:
+        cfg = compose(overrides)
+        assert cfg.submission.experiment == name
+        if len(points) > 1:  # a sweep's runs become distinct submissions with row labels
+            assert cfg.submission.entry, overrides
+            seen.add(cfg.submission.name)
+    assert len(seen) == (len(points) if len(points) > 1 else 0)
+
+
+def test_leaderboard_sweeps_train_every_row():
+    assert len(sweep_points("leaderboard")) == 15  # 5 methods x 3 seeds
+    assert len(sweep_points("leaderboard_long")) == 9  # 3 encoders x 3 seeds
+    names = {compose(p).submission.name for p in sweep_points("leaderboard")}
+    assert {"gatedgcn_td3_s0", "gatedgcn_sac_s2", "gatedgcn_ddpg_s1", "gcn_td3_s0", "mlp_td3_s2"} <= names
+    long = {compose(p).submission.name for p in sweep_points("leaderboard_long")}
+    assert {"gatedgcn_td3_uniform_5x_s0", "gcn_td3_uniform_5x_s1", "mlp_td3_uniform_5x_s2"} <= long
+
+
+def test_paper_experiment_is_table_one():
+    cfg = compose(["experiment=paper"])
+    assert (cfg.encoder.name, cfg.encoder.dim, cfg.encoder.layers) == ("gatedgcn", 256, 2)
+    assert (cfg.algo.name, cfg.algo.replay, cfg.algo.exploration_sigma, cfg.algo.critic_lookahead) == \
+        ("td3", "prioritized", 0.1, 0.0)
+    assert (cfg.algo.batch_size, cfg.algo.buffer_size, cfg.algo.warmup, cfg.algo.gamma, cfg.algo.lr_actor) == \
+        (100, 100000, 2000, 0.99, 1e-3)
+    assert (cfg.train.total_frames, cfg.train.utd, cfg.train.progress_reward) == (1_000_000, 1.0, 0.0)
+    assert compose(["experiment=paper", "encoder=mlp"]).encoder.dim == 256
+
+
+def test_encoder_names_mean_the_cpu_width():
+    for name in ("gatedgcn", "gcn", "mlp"):
+        assert compose([f"encoder={name}"]).encoder.dim == 32
+    assert compose(["encoder=gatedgcn", "encoder.dim=256"]).encoder.dim == 256
+
+
+def test_the_card_command_is_the_best_shipped_recipe():
+    """``crowdbench run algo=td3 encoder=gatedgcn`` trains exactly the config of the shipped
+    gatedgcn_td3_uniform_5x_s0 row (0.944; a seed reproduces its run bit for bit)."""
+    shipped = load_checkpoint(SUBMISSIONS / "gatedgcn_td3_uniform_5x_s0" / "checkpoint.pt")["config"]
+    card = OmegaConf.to_container(compose(["algo=td3", "encoder=gatedgcn"]), resolve=True)
+    assert training_config(card) == training_config(shipped)
+    assert training_config(OmegaConf.to_container(compose([]), resolve=True)) == training_config(shipped)
+
+
+@pytest.mark.parametrize("name", LEARNED)
+def test_shipped_rows_name_their_experiment_and_overrides_reproduce_the_checkpoint(name):
+    sub = yaml.safe_load((SUBMISSIONS / name / "submission.yaml").read_text())
+    assert sub["experiment"] in EXPERIMENTS
+    assert f"experiment={sub['experiment']}" in sub["overrides"]
+    shipped = load_checkpoint(SUBMISSIONS / name / "checkpoint.pt")["config"]
+    composed = OmegaConf.to_container(compose(sub["overrides"]), resolve=True)
+    assert training_config(composed) == training_config(shipped)
+
+
+def test_a_wrong_experiment_is_a_one_line_error(capsys):
+    assert main(["eval", "experiment=nope"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "experiment" in err and "leaderboard_long" in err and "paper" in err
+
+
+def test_plus_syntax_is_accepted():
+    assert compose(["+experiment=leaderboard", "+method=gcn_td3"]).submission.name == "gcn_td3_s0"
