@@ -1,4 +1,4 @@
-"""Does the critic know which action avoids a collision? (docs/training.md, session 2)
+"""Does the critic know which action avoids a collision? (docs/training.md, "Why the lookahead critic")
 
     python benchmarks/diag_critic.py RUN/checkpoint.pt
 
@@ -32,7 +32,7 @@ def main(path: str, batch: int = 512, steps: int = 30) -> None:
     cfg = OmegaConf.create(state["config"])
     enc = OmegaConf.to_container(cfg.encoder)
     actor = build_actor(cfg.algo.name, enc, cfg.env.v_max, squash=cfg.algo.actor_squash)
-    critic = build_critic(enc, lookahead_dt=float(cfg.algo.get("critic_lookahead", 0.0)), v_max=cfg.env.v_max)
+    critic = build_critic(enc, lookahead_dt=float(cfg.algo.critic_lookahead), v_max=cfg.env.v_max)
     loss = build_loss(cfg.algo.name, actor, critic, 1, cfg.env.v_max, cfg.algo, prepared=True)
     loss.load_state_dict(state["loss"])
     params = loss.qvalue_network_params[0] if hasattr(loss, "qvalue_network_params") else loss.value_network_params

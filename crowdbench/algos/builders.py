@@ -84,9 +84,8 @@ def build_loss(algo: str, actor, critic, n_agents: int, v_max: float, a: dict, p
     (six graph constructions per update otherwise). ``actor`` stays the raw-observation module
     for acting; the loss gets a prepared view sharing its parameters."""
     spec = leaf_action_spec(n_agents, v_max)
-    # reads "priority_weight", shaped like the per-sample loss (Learner.update); configs saved in
-    # checkpoints before session 6 have no per_weights (benchmarks/diag_critic.py rebuilds losses from them)
-    weighted = bool(a.get("per_weights", False))
+    # reads "priority_weight", shaped like the per-sample loss (Learner.update)
+    weighted = bool(a["per_weights"])
     if prepared and algo != "sac":
         lookahead = getattr(critic.module, "lookahead_dt", 0) > 0  # its target needs the raw next observation
         actor = actor_module(actor.module, prepared=True, carry_raw=lookahead)

@@ -15,19 +15,71 @@ class CheckpointError(ValueError):
     """A checkpoint that cannot be used: the message names the file and the problem."""
 
 
-REQUIRED = ("format", "config", "actor", "frames")
-FORMAT = "crowdbench-checkpoint-v1"
+REQUIRED = ("config", "actor", "frames")
+# The checkpoint format: an integer stored under "format" in every checkpoint. Format 1 (crowdbench
+# 0.1.0) wrote the string tag LEGACY_TAG instead; its configs may lack keys added since, which
+# :func:`upgrade` fills with the values the format-1 code used. Bump FORMAT when a change to the
+# saved fields or config needs an upgrade step, and add that step to UPGRADES.
+FORMAT = 2
+LEGACY_TAG = "crowdbench-checkpoint-v1"
+
+
+def _upgrade_1(state: dict) -> dict:
+    """Format 1 -> 2: defaults for config keys and fields that format-1 checkpoints may lack."""
+    cfg = state["config"]
+    algo, train = cfg.setdefault("algo", {}), cfg.setdefault("train", {})
+    algo.setdefault("actor_squash", "box")  # the per-component tanh squash preceded the radial default
+    algo.setdefault("per_weights", False)  # PER without importance-sampling weights, as in the paper
+    look = algo.get("critic_lookahead", 0.0)
+    if isinstance(look, bool):  # a flag for one env step before it became a horizon in seconds
+        look = float(cfg.get("env", {}).get("dt", 0.25)) if look else 0.0
+    algo["critic_lookahead"] = look
+    algo.setdefault("exploration", "gaussian")
+    algo.setdefault("ou_theta", 0.125)
+    algo.setdefault("n_steps", 1)
+    train.setdefault("progress_reward", 0.0)
+    train.setdefault("human_dropout", 0.0)
+    state.setdefault("wall_time_s", 0.0)
+    if "torch_rng" in state and "replay_rng" not in state:
+        # the replay sampler drew from an unseeded global RNG: continue from the seed's generator
+        state["replay_rng"] = torch.Generator().manual_seed(int(cfg.get("seed", 0))).get_state()
+    return state
+
+
+UPGRADES = {1: _upgrade_1}  # format n -> n + 1
+
+
+def upgrade(state: dict, version: int) -> dict:
+    """A checkpoint of format ``version`` brought to :data:`FORMAT` (config defaults filled in)."""
+    for v in range(version, FORMAT):
+        state = UPGRADES[v](state)
+    state["format"] = FORMAT
+    return state
+
+
+def checkpoint_format(state: dict, path: Path) -> int:
+    """The format number of a loaded checkpoint: the integer tag, format 1 without one."""
+    tag = state.get("format", 1)
+    if tag == LEGACY_TAG:
+        return 1
+    if isinstance(tag, bool) or not isinstance(tag, int) or tag < 1:
+        raise CheckpointError(f"not a crowdbench checkpoint: {path} (format tag {tag!r})")
+    if tag > FORMAT:
+        raise CheckpointError(f"checkpoint {path} has format {tag}, newer than this crowdbench reads "
+                              f"(formats 1-{FORMAT}): upgrade crowdbench")
+    return tag
 
 
 def save_checkpoint(path: Path, state: dict) -> None:
     """Write to a temporary file, then rename: a kill mid-write never corrupts the last checkpoint."""
     path = Path(path)
     tmp = path.with_suffix(path.suffix + ".tmp")
-    torch.save({"format": FORMAT, **state}, tmp)
+    torch.save({**state, "format": FORMAT}, tmp)
     os.replace(tmp, path)
 
 
 def load_checkpoint(path: Path) -> dict:
+    """A checkpoint's fields, upgraded to the current :data:`FORMAT` (see :func:`upgrade`)."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"checkpoint not found: {path}")
@@ -36,12 +88,15 @@ def load_checkpoint(path: Path) -> dict:
     except Exception as e:  # noqa: BLE001 - torch raises many types for truncated zips, pickled code, garbage
         reason = " ".join(str(e).split())[:200]
         raise CheckpointError(f"corrupted or unsafe checkpoint {path}: {type(e).__name__}: {reason}") from None
-    if not isinstance(state, dict) or state.get("format") != FORMAT:
-        raise CheckpointError(f"not a crowdbench checkpoint: {path} (missing format tag {FORMAT!r})")
+    if not isinstance(state, dict):
+        raise CheckpointError(f"not a crowdbench checkpoint: {path} (not a dict of fields)")
+    version = checkpoint_format(state, path)
     missing = [k for k in REQUIRED if k not in state]
     if missing:
         raise CheckpointError(f"checkpoint {path} lacks field(s): {', '.join(missing)}")
-    return state
+    if not isinstance(state["config"], dict):
+        raise CheckpointError(f"checkpoint {path}: its config is not a mapping")
+    return upgrade(state, version)
 
 
 class LearnedPolicy(Policy):
@@ -66,7 +121,7 @@ def policy_from_checkpoint(path: Path) -> LearnedPolicy:
     cfg = state["config"]
     try:
         actor = build_actor(cfg["algo"]["name"], dict(cfg["encoder"]), cfg["env"]["v_max"],
-                            squash=cfg["algo"].get("actor_squash", "box"))
+                            squash=cfg["algo"]["actor_squash"])
         actor.load_state_dict(state["actor"])
     except (KeyError, RuntimeError, ValueError, TypeError) as e:
         reason = " ".join(str(e).split())[:200]

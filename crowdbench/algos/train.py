@@ -160,8 +160,7 @@ def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool =
         learner.load_state_dict(state)
         env.sampler.load_state_dict(state["sampler"])
         torch.set_rng_state(state["torch_rng"])
-        if "replay_rng" in state:  # checkpoints before session 4 have none
-            replay_rng.set_state(state["replay_rng"])
+        replay_rng.set_state(state["replay_rng"])
         frames, updates = int(state["frames"]), int(state["updates"])
         truncate_log(out_dir / "logs", frames)
 
@@ -190,7 +189,7 @@ def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool =
     bar = tqdm(total=t.total_frames, initial=frames, disable=not progress, unit="frame", dynamic_ncols=True)
     eta = DurationEstimate(remaining, t.utd, a.warmup, bar.write)  # a resumed run refills warm-up frames too
     last_ckpt, last_probe, start = frames, frames, time.time()
-    elapsed0 = float(state.get("wall_time_s", 0.0)) if state is not None else 0.0
+    elapsed0 = float(state["wall_time_s"]) if state is not None else 0.0
     window: list[tuple[int, float]] = []  # (outcome, return) of recently finished episodes
     stats: dict = {}
     for batch in collector:

@@ -161,8 +161,8 @@ class GraphEncoder(nn.Module):
         keyed on the parameters' identities and versions: about 20 small ops less per call, which
         matters at B = 1. Recomputed on every call otherwise: in training the parameters change
         in place under optimisers that do not bump tensor versions (fused Adam does not), so a
-        version key would serve the first weights forever (until session 6 the training actor
-        acted with its initial layer 1: docs/training.md). Never cached under ``torch.func``."""
+        version key would serve the first weights forever (the training actor would act with
+        its initial layer 1). Never cached under ``torch.func``."""
         def compute():
             return self.layers[0].fold(self.embedding_matrix(), self.edge_emb)
 

@@ -366,7 +366,7 @@ def plot_runs(runs: list[Path], out: Path, n_smooth: int = 20) -> Path:
         if title.startswith("success"):
             ax.set_ylim(-0.02, 1.02)
         if title == "critic loss" and all(ln.get_ydata().min() > 0 for ln in ax.get_lines()):
-            ax.set_yscale("log")  # a diverging critic spans orders of magnitude (docs/training.md, session 5)
+            ax.set_yscale("log")  # a diverging critic loss spans orders of magnitude
         if ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize=7)
     if any(len(m) > 1 for _, m in groups):

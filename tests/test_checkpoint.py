@@ -1,0 +1,86 @@
+"""Checkpoint format versions: format-1 checkpoints (crowdbench 0.1.0) load through one upgrade."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from crowdbench.algos.builders import build_actor
+from crowdbench.algos.checkpoint import (
+    FORMAT,
+    LEGACY_TAG,
+    CheckpointError,
+    load_checkpoint,
+    policy_from_checkpoint,
+    save_checkpoint,
+)
+from crowdbench.envs.torchrl_env import CrowdEnv
+
+ROOT = Path(__file__).resolve().parents[1]
+SHIPPED = ROOT / "leaderboard" / "submissions" / "mlp_td3_s0" / "checkpoint.pt"  # format 1, no algo.per_weights
+
+
+def test_a_shipped_format_1_checkpoint_loads_with_the_upgraded_config():
+    raw = torch.load(SHIPPED, map_location="cpu", weights_only=True)
+    assert raw["format"] == LEGACY_TAG and "per_weights" not in raw["config"]["algo"]  # really format 1
+    state = load_checkpoint(SHIPPED)
+    assert state["format"] == FORMAT == 2
+    algo = state["config"]["algo"]
+    assert algo["per_weights"] is False
+    assert algo["actor_squash"] == raw["config"]["algo"]["actor_squash"]  # stored values are kept
+    assert algo["critic_lookahead"] == raw["config"]["algo"]["critic_lookahead"]
+    for k, v in raw["actor"].items():
+        assert torch.equal(state["actor"][k], v)
+
+    # the policy acts exactly as the actor rebuilt from the raw (format-1) config and weights
+    cfg = raw["config"]
+    ref = build_actor(cfg["algo"]["name"], dict(cfg["encoder"]), cfg["env"]["v_max"],
+                      squash=cfg["algo"]["actor_squash"])
+    ref.load_state_dict(raw["actor"])
+    ref.eval()
+    policy = policy_from_checkpoint(SHIPPED)
+    td = CrowdEnv("students003", batch=8, seed=0).reset()
+    with torch.no_grad():
+        assert torch.equal(policy.act(td), ref(td.clone(False))["agents", "action"])
+
+
+def test_every_shipped_checkpoint_loads():
+    for ckpt in sorted((ROOT / "leaderboard" / "submissions").glob("*/checkpoint.pt")):
+        state = load_checkpoint(ckpt)
+        assert state["format"] == FORMAT, ckpt
+
+
+def test_format_1_defaults(tmp_path):
+    """A minimal format-1 training checkpoint gets the values the format-1 code used."""
+    old = {"format": LEGACY_TAG, "config": {"seed": 3, "algo": {"name": "td3", "critic_lookahead": True},
+                                            "env": {"dt": 0.25}, "train": {}},
+           "actor": {}, "frames": 0, "updates": 0, "torch_rng": torch.get_rng_state()}
+    torch.save(old, tmp_path / "old.pt")
+    state = load_checkpoint(tmp_path / "old.pt")
+    algo, train = state["config"]["algo"], state["config"]["train"]
+    assert algo["actor_squash"] == "box" and algo["per_weights"] is False
+    assert algo["critic_lookahead"] == 0.25  # a flag for one env step
+    assert (algo["exploration"], algo["n_steps"], train["progress_reward"], train["human_dropout"]) == \
+        ("gaussian", 1, 0.0, 0.0)
+    assert state["wall_time_s"] == 0.0
+    assert torch.equal(state["replay_rng"], torch.Generator().manual_seed(3).get_state())
+    save_checkpoint(tmp_path / "new.pt", state)  # re-saved: the current format, no upgrade needed
+    again = torch.load(tmp_path / "new.pt", map_location="cpu", weights_only=True)
+    assert again["format"] == FORMAT and again["config"] == state["config"]
+
+
+def test_a_newer_format_is_a_one_line_error(tmp_path):
+    path = tmp_path / "future.pt"
+    torch.save({"format": FORMAT + 1, "config": {}, "actor": {}, "frames": 0}, path)
+    with pytest.raises(CheckpointError, match=rf"has format {FORMAT + 1}, newer than this crowdbench reads") as e:
+        load_checkpoint(path)
+    assert "\n" not in str(e.value)
+
+
+def test_a_foreign_format_tag_is_refused(tmp_path):
+    path = tmp_path / "foreign.pt"
+    torch.save({"format": "someone-else-v3", "config": {}, "actor": {}, "frames": 0}, path)
+    with pytest.raises(CheckpointError, match="not a crowdbench checkpoint"):
+        load_checkpoint(path)
