@@ -293,8 +293,8 @@ def test_experiment_field(tmp_path):
     d = write_yaml(root, "toy", learned_yaml("toy", extra="experiment: leaderboard_long\n"))
     toy_checkpoint(d / "checkpoint.pt", MLP)
     assert read_submission(d).data["experiment"] == "leaderboard_long"
-    for value, problem in (("[a, b]", "must be a string"), ("x" * 201, "at most 200 characters"),
-                           ("''", "non-empty string")):
+    too_long = "must be a non-empty string of at most 200 characters, got"
+    for value, problem in (("[a, b]", "must be a string"), ("x" * 201, f"{too_long} 201"), ("''", f"{too_long} 0")):
         (d / "submission.yaml").write_text(learned_yaml("toy", extra=f"experiment: {value}\n"))
         with pytest.raises(SubmissionError, match=f"field 'experiment': {problem}"):
             read_submission(d)
@@ -321,8 +321,9 @@ def test_readme_block_is_rendered_from_the_committed_results():
     assert "| ORCA | 1 | 0.888 | 0.884 |" in committed and "ORCA 0.934 (1.656 dangers per episode)" in committed
     (orca,) = [r for r in results if r["meta"]["submission"] == "orca"]
     orca["scenes"]["hotel"]["success_rate"]["mean"] = 0.5
-    (msg,) = render.diff_rows(committed, render.render_block(results, list(EVAL_SCENES), None))
-    assert msg.startswith("[] row 'ORCA': differs")
+    row, sentence = render.diff_rows(committed, render.render_block(results, list(EVAL_SCENES), None))
+    assert row.startswith("[] row 'ORCA': differs") and "0.500" in row
+    assert sentence.startswith("[] row 'Average success") and "ORCA 0.815" in sentence  # the average moved too
 
 
 def test_readme_block_written_checked_and_never_touched_by_a_scratch_root(tmp_path, monkeypatch, capsys):
