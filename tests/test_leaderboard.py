@@ -407,3 +407,19 @@ def test_ray_fan_out_gives_the_sequential_numbers(tmp_path, monkeypatch):
         ray_res = outs["ray"][n]
         assert res["scenes"] == ray_res["scenes"] and res["episode_outcomes"] == ray_res["episode_outcomes"], n
         assert res["harness"]["fingerprint"] == ray_res["harness"]["fingerprint"]
+
+
+def test_ray_that_cannot_start_is_one_line(tmp_path, monkeypatch):
+    ray = pytest.importorskip("ray")
+
+    def refuse(**kw):
+        raise ConnectionError("could not connect\nto ray://nohost:10001")
+
+    monkeypatch.setattr(ray, "init", refuse)
+    root = tmp_path / "lb"
+    add_straight(root)
+    log = []
+    assert run(root, launcher="ray", address="ray://nohost:10001", log=log.append, **FAST) == 1
+    assert log[-1] == ("crowdbench leaderboard: error: --launcher ray: cannot join the Ray cluster at "
+                       "ray://nohost:10001: ConnectionError: could not connect to ray://nohost:10001")
+    assert not (root / "README.md").exists()  # nothing written

@@ -42,6 +42,10 @@ OUTCOME_CHAR = {"success": "S", "collision": "C", "timeout": "T"}
 LAUNCHERS = ("local", "ray")
 
 
+class LauncherError(RuntimeError):
+    """The launcher itself cannot run (not a submission's fault): the run stops with one line."""
+
+
 def dummy_obs(batch: int = 2, humans: int = 3):
     from crowdbench.envs.policy import obs_tensordict
 
@@ -187,14 +191,19 @@ def _ray(todo: list, scenes, episodes, jobs: int, address: str | None):
     """One Ray task per submission: a local cluster of ``jobs`` CPUs, or the cluster at ``address``
     (``auto``, ``ray://host:10001``; crowdbench installed and the leaderboard directory at the same
     absolute path on its nodes)."""
-    import ray
+    try:
+        import ray
 
-    started = not ray.is_initialized()
-    if started:
-        if address:
-            ray.init(address=address)
-        else:  # a small object store: results are a few hundred kB
-            ray.init(num_cpus=jobs, include_dashboard=False, object_store_memory=100 * 1024 ** 2)
+        started = not ray.is_initialized()
+        if started:
+            if address:
+                ray.init(address=address)
+            else:  # a small object store: results are a few hundred kB
+                ray.init(num_cpus=jobs, include_dashboard=False, object_store_memory=100 * 1024 ** 2)
+    except Exception as e:  # noqa: BLE001 - no ray, an unreachable address, ...: one line, not a traceback
+        where = f"join the Ray cluster at {address}" if address else "start a local Ray cluster"
+        raise LauncherError(f"--launcher ray: cannot {where}: {type(e).__name__}: {' '.join(str(e).split())}") \
+            from None
     try:
         task = ray.remote(num_cpus=1, max_retries=0)(_job)
         refs = [task.remote(_absolute(sub), scenes, episodes, fp) for _, sub, fp, _ in todo]
@@ -275,7 +284,15 @@ def run(root: Path = DEFAULT_ROOT, only: list[str] | None = None, check: bool = 
             todo.append((d, sub, fp, res_path))
         except SubmissionError as e:
             reject(e)
-    for d, sub, res_path, outcome in _evaluate_all(todo, scenes, episodes, jobs, launcher, address):
+    outcomes = _evaluate_all(todo, scenes, episodes, jobs, launcher, address)
+    while True:
+        try:
+            d, sub, res_path, outcome = next(outcomes)
+        except StopIteration:
+            break
+        except LauncherError as e:
+            log(f"crowdbench leaderboard: error: {e}")
+            return 1
         if isinstance(outcome, SubmissionError):
             reject(outcome)
             continue
