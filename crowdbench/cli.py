@@ -8,11 +8,12 @@ import sys
 import time
 from pathlib import Path
 
+from crowdbench import policies
 from crowdbench.envs.core import SimConfig
 
 CONFIG_DIR = Path(__file__).resolve().parent / "conf"
 COMMANDS = ("eval", "run", "leaderboard", "submit", "viz", "plot")
-BASELINES = ("orca", "straight", "oracle")
+BASELINES = policies.NAMES  # the registry's built-in policies
 
 
 class UsageError(Exception):
@@ -73,27 +74,11 @@ def _hydra_message(err: Exception, overrides: list[str]) -> str:
 
 
 def make_policy(name: str, cfg):
-    if name == "straight":
-        from crowdbench.baselines.straight import StraightToGoal
-
-        return StraightToGoal(v_max=cfg.env.v_max, dt=cfg.env.dt)
-    if name == "orca":
-        from crowdbench.baselines.orca import ORCA
-
-        return ORCA(v_max=cfg.env.v_max, dt=cfg.env.dt, robot_radius=cfg.env.robot_radius,
-                    human_radius=cfg.env.human_radius, seed=cfg.seed, **cfg.orca)
-    if name == "oracle":  # privileged: knows the replayed humans' future (an upper bound, not a policy)
-        from crowdbench.baselines.oracle import Oracle
-
-        return Oracle(**cfg.oracle)
-    if name.endswith(".pt") or Path(name).exists():
-        from crowdbench.algos.checkpoint import CheckpointError, policy_from_checkpoint
-
-        try:
-            return policy_from_checkpoint(Path(name))
-        except CheckpointError as e:
-            raise UsageError(str(e)) from None
-    raise UsageError(f"unknown policy {name!r}; valid: {', '.join(BASELINES)} or a checkpoint path")
+    """``policy=NAME``: the registry builds it (crowdbench/policies.py) with this config's env and seed."""
+    try:
+        return policies.build(name, cfg)
+    except policies.PolicyError as e:
+        raise UsageError(str(e)) from None
 
 
 def output_dir(cfg, command: str, name: str) -> Path:
@@ -190,9 +175,9 @@ def cmd_eval(overrides: list[str]) -> int:
 
     cfg = compose(overrides)
     if is_selfplay(cfg.env):  # every agent acts from the policy (a robot checkpoint too: the transfer test)
-        if str(cfg.policy) == "oracle":
-            raise UsageError("the oracle plans against replayed humans, not reacting agents: not available with "
-                             "env=selfplay; valid: orca, straight or a checkpoint path")
+        if str(cfg.policy) in policies.PRIVILEGED:
+            raise UsageError(f"the {cfg.policy} plans against replayed humans, not reacting agents: not available "
+                             f"with env=selfplay; valid: {', '.join(policies.BASELINES)} or a checkpoint path")
         policy = make_policy(str(cfg.policy), cfg)
         run_selfplay_eval(policy, cfg, output_dir(cfg, "eval-selfplay", str(cfg.policy)), overrides)
         return 0
@@ -263,10 +248,52 @@ def run_one(cfg, overrides: list[str]) -> dict:
 
 
 def cmd_leaderboard(args: list[str]) -> int:
-    """Validate and evaluate leaderboard submissions, regenerate the table (argparse options, see --help)."""
-    from crowdbench.leaderboard import main as leaderboard_main
+    """Validate and evaluate leaderboard submissions, regenerate the tables (docs/submitting.md section 4)."""
+    import argparse
 
-    return leaderboard_main(args)
+    from crowdbench.data.scenes import check_scene
+    from crowdbench.envs.protocol import EVAL_SCENES
+    from crowdbench.leaderboard import BLOCK_START, DEFAULT_ROOT, LAUNCHERS, run
+
+    ap = argparse.ArgumentParser(prog="crowdbench leaderboard",
+                                 description="Validate and evaluate leaderboard submissions; regenerate the table.")
+    ap.add_argument("--check", action="store_true", help="re-evaluate everything (no cache, nothing written); "
+                    "exit 1 if leaderboard/README.md or the README block differs from the fresh result")
+    ap.add_argument("--force", action="store_true", help="re-evaluate even unchanged submissions")
+    ap.add_argument("--only", action="append", metavar="NAME", help="evaluate only this submission (repeatable); "
+                    "the others keep their cached results")
+    ap.add_argument("--episodes", type=int, default=None, help="N episodes per scene (evenly strided; unofficial)")
+    ap.add_argument("--scenes", default=None, help="comma-separated scene subset (unofficial)")
+    ap.add_argument("--jobs", type=int, default=1, help="evaluate N submissions in parallel "
+                    "(each single-threaded; the numbers do not depend on N)")
+    ap.add_argument("--launcher", choices=LAUNCHERS, default="local", help="local: a process pool of --jobs; "
+                    "ray: one Ray task per submission (a local cluster of --jobs CPUs, or --address)")
+    ap.add_argument("--address", default=None, help="--launcher ray: join this cluster (auto, ray://host:10001)")
+    ap.add_argument("--root", type=Path, default=None, help=f"leaderboard directory (default {DEFAULT_ROOT})")
+    ap.add_argument("--readme", type=Path, default=None, help="also regenerate the results block of this file "
+                    "(default: ./README.md when --root is not given and it has the block)")
+    a = ap.parse_args(args)
+    if a.episodes is not None and a.episodes < 1:
+        ap.error("--episodes must be >= 1")
+    scenes = None
+    if a.scenes:
+        try:
+            scenes = [check_scene(s.strip()) for s in a.scenes.split(",") if s.strip()]
+        except ValueError as e:
+            ap.error(str(e))
+        bad = [s for s in scenes if s not in EVAL_SCENES]
+        if bad:
+            ap.error(f"not an evaluation scene: {', '.join(bad)}; valid: {', '.join(EVAL_SCENES)}")
+    if a.jobs < 1:
+        ap.error("--jobs must be >= 1")
+    if a.address and a.launcher != "ray":
+        ap.error("--address needs --launcher ray")
+    readme = a.readme
+    if readme is None and a.root is None:  # the repository's own run; a scratch --root never touches it
+        default = Path("README.md")
+        readme = default if default.is_file() and BLOCK_START in default.read_text() else None
+    return run(a.root or DEFAULT_ROOT, a.only, a.check, a.force, a.episodes, scenes, jobs=a.jobs,
+               launcher=a.launcher, address=a.address, readme=readme)
 
 
 def training_overrides(cfg: dict) -> list[str]:
@@ -369,7 +396,8 @@ def main(argv: list[str] | None = None) -> int:
               "[out=DIR] [resume=true]\n"
               "  crowdbench eval|run ... viz.record=true [viz.episodes=[0,5]] [viz.scenes=[students003]]\n"
               "  crowdbench run|eval env=selfplay [env.n_agents=N] [env.scenario=circle|square|mixed] ...  (docs/selfplay.md)\n"
-              "  crowdbench leaderboard [--check] [--force] [--only NAME] [--episodes N] [--scenes a,b] [--root DIR]\n"
+              "  crowdbench leaderboard [--check] [--force] [--only NAME] [--episodes N] [--scenes a,b] [--jobs N]\n"
+              "      [--launcher local|ray] [--address ADDR] [--root DIR] [--readme FILE]\n"
               "  crowdbench submit <run dir> --name NAME --entry LABEL [--authors A,B] [--link URL] [--root DIR]\n"
               "  crowdbench viz <episodes.jsonl|results dir> [--episode N] [--scene S] [--grid K] [--out FILE.png]\n"
               "  crowdbench plot <run dir> [<run dir> ...] [--out FILE.png] [--smooth N]")

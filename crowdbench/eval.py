@@ -17,6 +17,7 @@ from crowdbench.data.scenes import check_scene, load_scene
 from crowdbench.envs.core import OUTCOMES, SUCCESS, CrowdSim, SimConfig
 from crowdbench.envs.policy import Policy, obs_tensordict
 from crowdbench.envs.protocol import PAPER_SCENES, PROTOCOL_VERSION, ProtocolSpec, load_episodes
+from crowdbench.numerics import describe
 
 Z95 = 1.959963984540054
 PERSONAL_SPACE = 0.45  # m, surface gap
@@ -173,7 +174,8 @@ def evaluate(policy: Policy, scenes=PAPER_SCENES, episodes: int | None = None, o
              recorder_factory=None) -> dict:
     """Evaluate ``policy`` on the saved protocol episode lists; optionally write results files."""
     scenes = [check_scene(s) for s in scenes]
-    results = {"protocol": PROTOCOL_VERSION, "policy": policy.name, "meta": meta or {}, "scenes": {}}
+    results = {"protocol": PROTOCOL_VERSION, "policy": policy.name, "meta": meta or {}, "numerics": describe(),
+               "scenes": {}}
     if getattr(policy, "privileged", False):
         results["privileged"] = True
     rows = []

@@ -256,5 +256,170 @@ def test_fingerprint_covers_every_module_an_evaluation_loads(tmp_path):
     loaded = {Path(f).resolve() for f in json.loads(out.stdout.splitlines()[-1])}
     assert {PACKAGE_DIR / "algos" / "builders.py", PACKAGE_DIR / "baselines" / "oracle.py"} <= loaded
     hashed = set(code_files())
-    assert loaded - hashed == {PACKAGE_DIR / "leaderboard.py"}
+    # everything loaded is hashed, except the harness package itself (versioned by HARNESS_VERSION)
+    assert {p.relative_to(PACKAGE_DIR).parts[0] for p in loaded - hashed} == {"leaderboard"}
+    assert PACKAGE_DIR / "policies.py" in hashed  # the registry builds every baseline
     assert PACKAGE_DIR / "algos" / "train.py" not in hashed  # training code does not invalidate results
+
+
+def test_registry_builds_the_same_policy_for_cli_and_leaderboard(tmp_path):
+    """`crowdbench eval policy=orca` and an ORCA submission get the same constructor arguments,
+    including the env config's radii and dt; bad names and keys are one-line errors naming the choices."""
+    from crowdbench import policies
+    from crowdbench.cli import UsageError, compose, make_policy
+    from crowdbench.leaderboard import build_policy, read_submission
+
+    root = tmp_path / "lb"
+    d = write_yaml(root, "orca", "name: orca\nkind: baseline\npolicy: orca\nseed: 3\nauthors: [a]\n"
+                                 "overrides: {safety_margin: 0.25}\n")
+    lb = build_policy(read_submission(d))
+    cli = make_policy("orca", compose(["seed=3", "orca.safety_margin=0.25"]))
+    assert {k: v for k, v in vars(lb).items() if k != "name"} == {k: v for k, v in vars(cli).items() if k != "name"}
+    assert make_policy("orca", compose(["env.robot_radius=0.3"])).robot_radius == 0.3  # env values reach ORCA
+    assert make_policy("straight", compose(["env.v_max=0.5"])).v_max == 0.5
+    with pytest.raises(UsageError, match=r"unknown policy 'nosuch'; valid: orca, straight, oracle or a checkpoint"):
+        make_policy("nosuch", compose([]))
+    with pytest.raises(policies.PolicyError, match=r"unknown oracle parameter 'seed'; valid: beam, cell") as e:
+        policies.build("oracle", None, {"seed": 1})
+    assert e.value.key == "seed"
+    with pytest.raises(policies.PolicyError, match=r"^oracle: oracle needs headings >= 1"):
+        policies.build("oracle", None, {"oracle.headings": 0})
+
+
+def test_experiment_field(tmp_path):
+    from crowdbench.leaderboard import SubmissionError, read_submission
+
+    root = tmp_path / "lb"
+    d = write_yaml(root, "toy", learned_yaml("toy", extra="experiment: leaderboard_long\n"))
+    toy_checkpoint(d / "checkpoint.pt", MLP)
+    assert read_submission(d).data["experiment"] == "leaderboard_long"
+    too_long = "must be a non-empty string of at most 200 characters, got"
+    for value, problem in (("[a, b]", "must be a string"), ("x" * 201, f"{too_long} 201"), ("''", f"{too_long} 0")):
+        (d / "submission.yaml").write_text(learned_yaml("toy", extra=f"experiment: {value}\n"))
+        with pytest.raises(SubmissionError, match=f"field 'experiment': {problem}"):
+            read_submission(d)
+    d = write_yaml(root, "orca", "name: orca\nkind: baseline\npolicy: orca\nauthors: [a]\nexperiment: x\n")
+    with pytest.raises(SubmissionError, match="field 'experiment': only learned submissions"):
+        read_submission(d)
+
+
+def committed_results() -> list[dict]:
+    import json
+
+    return [json.loads(p.read_text()) for p in sorted((REPO / "leaderboard" / "results").glob("*/results.json"))]
+
+
+def test_readme_block_is_rendered_from_the_committed_results():
+    """The results block of the top-level README.md is what the harness renders from
+    leaderboard/results/*/results.json (pure rendering, no evaluation); a changed number is caught."""
+    from crowdbench.envs.protocol import EVAL_SCENES
+    from crowdbench.leaderboard import render
+
+    results = committed_results()
+    committed = render.read_block((REPO / "README.md").read_text())
+    assert render.render_block(results, list(EVAL_SCENES), None) == committed
+    assert "| ORCA | 1 | 0.888 | 0.884 |" in committed and "ORCA 0.934 (1.656 dangers per episode)" in committed
+    (orca,) = [r for r in results if r["meta"]["submission"] == "orca"]
+    orca["scenes"]["hotel"]["success_rate"]["mean"] = 0.5
+    row, sentence = render.diff_rows(committed, render.render_block(results, list(EVAL_SCENES), None))
+    assert row.startswith("[] row 'ORCA': differs") and "0.500" in row
+    assert sentence.startswith("[] row 'Average success") and "ORCA 0.815" in sentence  # the average moved too
+
+
+def test_readme_block_written_checked_and_never_touched_by_a_scratch_root(tmp_path, monkeypatch, capsys):
+    root = tmp_path / "lb"
+    add_straight(root)
+    readme = tmp_path / "README.md"
+    text = "# Title\n\nprose\n\n<!-- generated:results:start -->\nold\n<!-- generated:results:end -->\n\nmore\n"
+    readme.write_text(text)
+    assert run(root, readme=readme, log=lambda m: None, **FAST) == 0
+    new = readme.read_text()
+    assert new.startswith("# Title\n\nprose\n\n") and new.endswith("\n\nmore\n") and "old" not in new
+    assert "UNOFFICIAL subset" in new and "| Straight to goal | 1 |" in new
+    log = []
+    assert run(root, readme=readme, check=True, log=log.append, **FAST) == 0
+    readme.write_text(re.sub(r"(\| Straight to goal \| 1 \| )\d\.\d{3}", r"\g<1>0.999", new))
+    log.clear()
+    assert run(root, readme=readme, check=True, log=log.append, **FAST) == 1
+    assert "FAILED" in log[-1] and f"{readme}: [] row 'Straight to goal': differs" in log[-1]
+    readme.write_text("no markers\n")
+    assert run(root, readme=readme, log=log.append, **FAST) == 1 and "has no <!-- generated:results:start" in log[-1]
+    # the CLI: a --root run leaves ./README.md alone; the default root's run updates its block
+    monkeypatch.chdir(tmp_path)
+    readme.write_text(text)
+    assert cli_main(["leaderboard", "--root", str(root), "--episodes", "1", "--scenes", "eth"]) == 0
+    assert readme.read_text() == text
+    (tmp_path / "lb").rename(tmp_path / "leaderboard")
+    assert cli_main(["leaderboard", "--episodes", "1", "--scenes", "eth"]) == 0
+    assert "| Straight to goal | 1 |" in readme.read_text()
+    assert "the results block of README.md" in capsys.readouterr().out
+
+
+BOOM = '''
+from examples.tiny_encoder import TinyEncoder
+
+
+class Boom(TinyEncoder):  # passes the harness's 2-observation smoke test, fails on the real batch
+    def forward(self, robot, humans=None, humans_mask=None):
+        if robot.shape[0] > 2:
+            raise RuntimeError("boom on a real batch")
+        return super().forward(robot, humans, humans_mask)
+'''
+
+
+def test_ray_fan_out_gives_the_sequential_numbers(tmp_path, monkeypatch):
+    """--launcher ray: one Ray task per submission on a local 2-CPU cluster; the same results.json
+    numbers as the sequential harness, and a task that fails rejects only its own submission."""
+    import json
+    import shutil
+
+    pytest.importorskip("ray")
+    monkeypatch.syspath_prepend(str(REPO))
+    from examples.tiny_encoder import TinyEncoder
+
+    base = tmp_path / "base"
+    add_straight(base)
+    add_toy(base)
+    write_yaml(base, "orca", "name: orca\nkind: baseline\nentry: ORCA\npolicy: orca\nauthors: [a]\n")
+    d = write_yaml(base, "boom", learned_yaml("boom", "boom", "encoder_import: boom_encoder:Boom\n")
+                   .replace("Toy MLP", "Boom"))
+    (d / "boom_encoder.py").write_text(BOOM)
+    monkeypatch.setitem(ENCODERS, "boom", TinyEncoder)
+    toy_checkpoint(d / "checkpoint.pt", {"name": "boom", "dim": 8})
+    del ENCODERS["boom"]
+    fast = {"episodes": 3, "scenes": ["hotel"]}
+    outs = {}
+    for launcher in ("local", "ray"):
+        root = tmp_path / launcher
+        shutil.copytree(base, root)
+        log = []
+        jobs = 2 if launcher == "ray" else 1  # Ray: a 2-CPU local cluster; local: the sequential loop
+        assert run(root, launcher=launcher, jobs=jobs, log=log.append, **fast) == 1, log  # boom is rejected ...
+        (bad,) = [m for m in log if "error" in m]
+        assert "submissions/boom/submission.yaml: evaluation failed: RuntimeError: boom on a real batch" in bad
+        assert "\n" not in bad and "boom" in (root / "README.md").read_text().split("## Rejected")[1]
+        outs[launcher] = {n: json.loads((root / "results" / n / "results.json").read_text())
+                          for n in ("orca", "straight", "toy")}  # ... while the others are evaluated
+    import ray
+
+    assert not ray.is_initialized()  # the harness shut its cluster down
+    for n, res in outs["local"].items():
+        ray_res = outs["ray"][n]
+        assert res["scenes"] == ray_res["scenes"] and res["episode_outcomes"] == ray_res["episode_outcomes"], n
+        assert res["harness"]["fingerprint"] == ray_res["harness"]["fingerprint"]
+
+
+def test_ray_that_cannot_start_is_one_line(tmp_path, monkeypatch):
+    ray = pytest.importorskip("ray")
+
+    def refuse(**kw):
+        raise ConnectionError("could not connect\nto ray://nohost:10001")
+
+    monkeypatch.setattr(ray, "init", refuse)
+    root = tmp_path / "lb"
+    add_straight(root)
+    log = []
+    assert run(root, launcher="ray", address="ray://nohost:10001", log=log.append, **FAST) == 1
+    assert log[-1] == ("crowdbench leaderboard: error: --launcher ray: cannot join the Ray cluster at "
+                       "ray://nohost:10001: ConnectionError: could not connect to ray://nohost:10001")
+    assert not (root / "README.md").exists()  # nothing written

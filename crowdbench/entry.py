@@ -1,0 +1,21 @@
+"""The ``crowdbench`` console script: pins evaluation's numerical path before torch is imported."""
+
+from __future__ import annotations
+
+import sys
+
+EVALUATING = ("eval", "leaderboard")  # commands whose numbers are official (crowdbench/numerics.py)
+
+
+def main() -> int:
+    if sys.argv[1:2] and sys.argv[1] in EVALUATING:
+        from crowdbench.numerics import pin
+
+        pin()
+    from crowdbench.cli import main as cli_main
+
+    return cli_main(sys.argv[1:])
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,25 @@
+"""The leaderboard harness: validate submissions, evaluate them on protocol v1, generate the tables.
+
+Modules: ``schema`` (submission.yaml fields, validation, :func:`make_submission`), ``cache``
+(fingerprint, the evaluated code closure), ``harness`` (policies via crowdbench.policies,
+evaluation, the run loop, local / Ray fan-out), ``render`` (tables, plot, README block, diffs).
+The command line is ``crowdbench leaderboard`` (crowdbench/cli.py); field reference and rules:
+docs/submitting.md.
+"""
+
+from crowdbench.leaderboard.cache import EVAL_MODULES, HARNESS_VERSION, code_files, fingerprint
+from crowdbench.leaderboard.harness import LAUNCHERS, build_policy, run
+from crowdbench.leaderboard.render import BLOCK_END, BLOCK_START, diff_rows, render_block, render_readme
+from crowdbench.leaderboard.schema import (
+    DEFAULT_ROOT,
+    PACKAGE_DIR,
+    REPO_DIR,
+    Submission,
+    SubmissionError,
+    make_submission,
+    read_submission,
+)
+
+__all__ = ["BLOCK_END", "BLOCK_START", "DEFAULT_ROOT", "EVAL_MODULES", "HARNESS_VERSION", "LAUNCHERS", "PACKAGE_DIR",
+           "REPO_DIR", "Submission", "SubmissionError", "build_policy", "code_files", "diff_rows", "fingerprint",
+           "make_submission", "read_submission", "render_block", "render_readme", "run"]

@@ -1,0 +1,30 @@
+"""The numerical path of evaluation, pinned so that every x86 CPU computes the same episodes.
+
+ATen picks its CPU kernels by the machine's vector extensions (default / AVX2 / AVX-512) and MKL its BLAS
+code path likewise; the float32 results differ in low-order bits, and over a 100-step closed-loop
+episode a few of those bits can flip a near-miss into a collision (one episode per few thousand, on the
+shipped checkpoints). ``crowdbench eval`` and ``crowdbench leaderboard`` therefore run with ATen's portable
+``default`` kernels and MKL's conditional numerical reproducibility (``MKL_CBWR=COMPATIBLE``); both are
+read when torch first dispatches a kernel, so :func:`pin` must run before crowdbench imports torch
+(``crowdbench.entry``). Training is not pinned: it is slower on the portable kernels and its numbers
+come from evaluation anyway. A variable the user sets explicitly is kept (and recorded in results.json).
+"""
+
+from __future__ import annotations
+
+import os
+
+PINNED = {"ATEN_CPU_CAPABILITY": "default", "MKL_CBWR": "COMPATIBLE"}
+
+
+def pin() -> None:
+    for key, value in PINNED.items():
+        os.environ.setdefault(key, value)
+
+
+def describe() -> dict:
+    """What computed an evaluation: torch's version and the kernels it dispatched to."""
+    import torch
+
+    return {"torch": torch.__version__, "cpu_capability": torch.backends.cpu.get_cpu_capability(),
+            "mkl_cbwr": os.environ.get("MKL_CBWR")}
