@@ -1,0 +1,37 @@
+"""The package works installed as a wheel (not editable), run from a directory outside the repository."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_installed_wheel_evaluates_from_outside_the_repository(tmp_path):
+    # the wheel is built from the checkout with the installed setuptools (no network), then installed
+    # without its dependencies into a venv that sees this interpreter's packages (torch etc.)
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation", "-w",
+                    str(tmp_path / "whl"), str(ROOT)], check=True, timeout=300)
+    (wheel,) = (tmp_path / "whl").glob("crowdbench-*.whl")
+    subprocess.run([sys.executable, "-m", "venv", "--system-site-packages", str(tmp_path / "venv")], check=True)
+    bin_dir = tmp_path / "venv" / "bin"
+    subprocess.run([bin_dir / "pip", "install", "-q", "--no-deps", "--no-index", str(wheel)], check=True, timeout=300)
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    where = subprocess.run([bin_dir / "python", "-c", "import crowdbench; print(crowdbench.__file__)"], cwd=elsewhere,
+                           env=env, capture_output=True, text=True, check=True).stdout.strip()
+    assert where.startswith(str(tmp_path / "venv")), where  # the wheel's copy, not the checkout
+    p = subprocess.run([bin_dir / "crowdbench", "eval", "policy=orca", "eval.episodes=10", "eval.scenes=[hotel]",
+                        "out=o"], cwd=elsewhere, env=env, capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr[-2000:]
+    res = json.loads((elsewhere / "o" / "results.json").read_text())
+    assert list(res["scenes"]) == ["hotel"] and res["numerics"]["cpu_capability"] == "DEFAULT"
+    assert 0.0 <= res["scenes"]["hotel"]["success_rate"]["mean"] <= 1.0
+    lb = subprocess.run([bin_dir / "crowdbench", "leaderboard", "--check"], cwd=elsewhere, env=env,
+                        capture_output=True, text=True, timeout=300)
+    assert lb.returncode == 1 and "no submissions under leaderboard/submissions" in lb.stdout + lb.stderr
