@@ -1,0 +1,157 @@
+"""Every command of the README's command table runs (tiny budgets), so the table cannot drift.
+
+``INVOCATIONS`` maps each documented command to the concrete invocations that exercise it: placeholders
+(RUN, OUT, SWEEP_DIR, N, ...) become real paths and values, ``a\\|b`` alternatives each get an invocation,
+and tiny budgets are appended. A README row without an entry fails, an entry whose invocation drops a
+``key=value`` or ``--flag`` the README shows fails, and every invocation must exit 0.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from crowdbench.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+PLACEHOLDER = re.compile(r"\.\.\.|\b(RUN|SELFPLAY_RUN|OUT|DIR|SWEEP_DIR|NAME|LABEL|FILE|ADDR|N|S|K)\b")
+EVAL = ["eval.episodes=2", "eval.scenes=[hotel]"]
+RUN = ["train.total_frames=256", "train.frames_per_batch=128", "algo.warmup=128", "encoder.dim=8",
+       "train.probe_every=1000000", "train.checkpoint_every=1000000", "train.utd=0.25", *EVAL]
+SWEEP = [o for o in RUN if not o.startswith("eval.episodes")] + ["eval.episodes=1"]
+SELFPLAY = ["env.batch=4", "train.frames_per_batch=32", "algo.warmup=64", "algo.batch_size=16", "train.utd=0.125",
+            "train.total_frames=64", "train.checkpoint_every=64", "encoder.dim=8", "env.eval_episodes=2",
+            "env.eval_scenarios=[circle]"]
+
+# README command -> invocations, in order (later ones use the directories earlier ones wrote: {run} ...)
+INVOCATIONS: dict[str, list[list[str]]] = {
+    "crowdbench eval policy=orca": [["eval", "policy=orca", *EVAL]],
+    "crowdbench eval policy=straight": [["eval", "policy=straight", *EVAL]],
+    "crowdbench eval policy=oracle": [["eval", "policy=oracle", *EVAL]],
+    "crowdbench eval policy=orca orca.safety_margin=0": [["eval", "policy=orca", "orca.safety_margin=0", *EVAL]],
+    "crowdbench eval ... eval.scenes=[zara1,zara3,uni_examples]":
+        [["eval", "policy=straight", "eval.scenes=[zara1,zara3,uni_examples]", "eval.episodes=2"]],
+    "crowdbench eval ... eval.episodes=50": [["eval", "policy=straight", "eval.episodes=50", "eval.scenes=[hotel]"]],
+    "crowdbench eval ... eval.save_episodes=true":
+        [["eval", "policy=straight", "eval.save_episodes=true", *EVAL, "out={out}"]],
+    "crowdbench eval ... out=DIR": [["eval", "policy=straight", *EVAL, "out={tmp}/eval_dir"]],
+    "crowdbench run algo=td3 encoder=gatedgcn": [["run", "algo=td3", "encoder=gatedgcn", *RUN, "out={run}"]],
+    "crowdbench eval policy=RUN/checkpoint.pt": [["eval", "policy={run}/checkpoint.pt", *EVAL]],
+    "crowdbench run algo=ddpg\\|sac encoder=gcn\\|mlp": [["run", "algo=ddpg", "encoder=gcn", *RUN],
+                                                         ["run", "algo=sac", "encoder=mlp", *RUN]],
+    "crowdbench run experiment=paper": [["run", "experiment=paper", *RUN, "train.utd=0.02"]],
+    "crowdbench run ... train.total_frames=N train.max_minutes=30 seed=S":
+        [["run", *RUN, "train.total_frames=256", "train.max_minutes=30", "seed=1"]],
+    "crowdbench run ... out=RUN resume=true": [["run", *RUN, "train.total_frames=384", "out={run}", "resume=true"]],
+    "crowdbench run ... train.progress_reward=0": [["run", *RUN, "train.progress_reward=0"]],
+    "crowdbench run ... algo.n_steps=5": [["run", *RUN, "algo.n_steps=5"]],
+    "crowdbench run ... algo.exploration=ou": [["run", *RUN, "algo.exploration=ou"]],
+    "crowdbench run ... algo.critic_lookahead=0": [["run", *RUN, "algo.critic_lookahead=0"]],
+    "crowdbench run ... train.human_dropout=0.8": [["run", *RUN, "train.human_dropout=0.8"]],
+    "crowdbench run ... algo.replay=prioritized": [["run", *RUN, "algo.replay=prioritized"]],
+    "crowdbench run ... algo.replay=prioritized algo.per_weights=true":
+        [["run", *RUN, "algo.replay=prioritized", "algo.per_weights=true"]],
+    "crowdbench run ... train.logger=tensorboard": [["run", *RUN, "train.logger=tensorboard"]],
+    "crowdbench run -m encoder=gatedgcn,gcn,mlp seed=0,1,2":
+        [["run", "-m", "encoder=gatedgcn,gcn,mlp", "seed=0,1,2", *SWEEP, "out={tmp}/sweep9"]],
+    "crowdbench run -m experiment=leaderboard": [["run", "-m", "experiment=leaderboard", *SWEEP, "out={sweep}"]],
+    "crowdbench submit SWEEP_DIR": [["submit", "{sweep}", "--root", "{lb}"]],
+    "crowdbench submit RUN --name NAME --entry LABEL":
+        [["submit", "{run}", "--name", "tiny_run", "--entry", "tiny TD3", "--root", "{lb}"]],
+    "crowdbench leaderboard": [["leaderboard", "--root", "{lb}", "--episodes", "2", "--scenes", "hotel", "--jobs", "2"]],
+    "crowdbench leaderboard --check":
+        [["leaderboard", "--check", "--root", "{lb}", "--episodes", "2", "--scenes", "hotel", "--jobs", "2"]],
+    "crowdbench run env=selfplay algo=td3 encoder=gatedgcn":
+        [["run", "env=selfplay", "algo=td3", "encoder=gatedgcn", "env.n_agents=4", *SELFPLAY, "out={selfplay}"]],
+    "crowdbench run env=selfplay env.n_agents=16 env.scenario=square env.background=students001":
+        [["run", "env=selfplay", "env.n_agents=16", "env.scenario=square", "env.background=students001", *SELFPLAY]],
+    "crowdbench eval env=selfplay policy=orca\\|straight\\|RUN/checkpoint.pt":
+        [["eval", "env=selfplay", f"policy={p}", "env.eval_episodes=2", "env.eval_scenarios=[circle]"]
+         for p in ("orca", "straight", "{run}/checkpoint.pt")],
+    "crowdbench eval policy=SELFPLAY_RUN/checkpoint.pt": [["eval", "policy={selfplay}/checkpoint.pt", *EVAL]],
+    "crowdbench eval ... viz.record=true [viz.episodes=[0,21]] [viz.scenes=[students003]]":
+        [["eval", "policy=straight", "viz.record=true", "viz.episodes=[0,249]", "viz.scenes=[hotel]", *EVAL,
+          "out={tmp}/viz_eval"]],
+    "crowdbench viz OUT [--episode N] [--scene S] [--out FILE.png]":
+        [["viz", "{out}", "--episode", "0", "--scene", "hotel", "--out", "{tmp}/ep.png"]],
+    "crowdbench viz OUT --grid K [--scene S]": [["viz", "{out}", "--grid", "2", "--scene", "hotel",
+                                                 "--out", "{tmp}/grid.png"]],
+    "crowdbench plot RUN [RUN ...] [--out FILE.png] [--smooth N]":
+        [["plot", "{run}", "{run}", "--out", "{tmp}/curves.png", "--smooth", "2"]],
+}
+
+
+def readme_commands() -> list[str]:
+    text = (ROOT / "README.md").read_text()
+    table = text.split("| command |", 1)[1].split("\n\n", 1)[0]
+    return [m.group(1) for m in re.finditer(r"^\| `([^`]+)` \|", table, re.M)]
+
+
+def shown_tokens(command: str) -> list[str]:
+    """The README command's concrete ``key=value`` and ``--flag`` tokens (alternatives split)."""
+    out, depth = [], 0
+    for tok in command.split()[2:]:
+        if depth or tok.startswith("["):  # an optional [...] group (it may hold a Hydra list): not required
+            depth += tok.count("[") - tok.count("]")
+            continue
+        if not PLACEHOLDER.search(tok):
+            out.append(tok)
+    return out
+
+
+def test_every_readme_command_has_invocations():
+    commands = readme_commands()
+    assert len(commands) >= 30
+    assert [c for c in commands if c not in INVOCATIONS] == []
+    assert [c for c in INVOCATIONS if c not in commands] == []  # no stale entry
+
+
+@pytest.mark.parametrize("command", list(INVOCATIONS))
+def test_invocations_keep_what_the_readme_shows(command):
+    invocations = INVOCATIONS[command]
+    sub = command.split()[1]
+    flat = [" ".join(i) for i in invocations]
+    assert all(i[0] == sub for i in invocations)
+    for tok in shown_tokens(command):
+        if "\\|" in tok:  # policy=orca\|straight\|... : each alternative in some invocation
+            key, _, vals = tok.partition("=")
+            for v in vals.split("\\|"):
+                if not PLACEHOLDER.search(v):
+                    assert any(f"{key}={v}" in f for f in flat), (command, v)
+        else:
+            assert all(tok in i for i in invocations), (command, tok)
+
+
+@pytest.fixture(scope="module")
+def places(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("readme")
+    (tmp / "lb" / "submissions").mkdir(parents=True)
+    return {"tmp": tmp, "run": tmp / "run", "out": tmp / "eval_out", "sweep": tmp / "sweep", "lb": tmp / "lb",
+            "selfplay": tmp / "selfplay"}
+
+
+def test_every_readme_command_runs(places, monkeypatch, capsys):
+    monkeypatch.chdir(places["tmp"])  # default outputs/ go to the scratch directory
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "RL_WARNINGS": "False"}
+    failed = []
+    for command, invocations in INVOCATIONS.items():
+        for inv in invocations:
+            args = [a.format(**places) for a in inv]
+            if args[:2] == ["run", "-m"]:  # Hydra's multirun owns global state: a fresh interpreter
+                p = subprocess.run([sys.executable, "-m", "crowdbench", *args], env=env, capture_output=True,
+                                   text=True, timeout=900)
+                rc, err = p.returncode, p.stderr[-500:]
+            else:
+                rc = main(args)
+                err = capsys.readouterr().err[-500:]
+            if rc != 0:
+                failed.append(f"{command} -> crowdbench {' '.join(args)}: exit {rc}: {err}")
+    assert failed == []
+    subs = sorted(p.name for p in (places["lb"] / "submissions").iterdir())
+    assert "tiny_run" in subs and "gatedgcn_sac_s2" in subs and len(subs) == 16  # 15 leaderboard rows + 1
+    assert (places["lb"] / "README.md").is_file() and (places["tmp"] / "viz_eval" / "recordings").is_dir()
