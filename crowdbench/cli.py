@@ -254,11 +254,12 @@ def cmd_leaderboard(args: list[str]) -> int:
     from crowdbench.data.scenes import check_scene
     from crowdbench.envs.protocol import EVAL_SCENES
     from crowdbench.leaderboard import BLOCK_START, DEFAULT_ROOT, LAUNCHERS, run
+    from crowdbench.leaderboard.render import blocks_in
 
     ap = argparse.ArgumentParser(prog="crowdbench leaderboard",
                                  description="Validate and evaluate leaderboard submissions; regenerate the table.")
     ap.add_argument("--check", action="store_true", help="re-evaluate everything (no cache, nothing written); "
-                    "exit 1 if leaderboard/README.md or the README block differs from the fresh result")
+                    "exit 1 if leaderboard/README.md or a generated block (README, docs) differs from the fresh result")
     ap.add_argument("--force", action="store_true", help="re-evaluate even unchanged submissions")
     ap.add_argument("--only", action="append", metavar="NAME", help="evaluate only this submission (repeatable); "
                     "the others keep their cached results")
@@ -272,6 +273,9 @@ def cmd_leaderboard(args: list[str]) -> int:
     ap.add_argument("--root", type=Path, default=None, help=f"leaderboard directory (default {DEFAULT_ROOT})")
     ap.add_argument("--readme", type=Path, default=None, help="also regenerate the results block of this file "
                     "(default: ./README.md when --root is not given and it has the block)")
+    ap.add_argument("--docs", type=Path, action="append", default=None, metavar="FILE",
+                    help="also regenerate the generated blocks of this file (repeatable; default: "
+                    "docs/results.md and docs/reproduction.md when --root is not given and they have them)")
     a = ap.parse_args(args)
     if a.episodes is not None and a.episodes < 1:
         ap.error("--episodes must be >= 1")
@@ -292,8 +296,12 @@ def cmd_leaderboard(args: list[str]) -> int:
     if readme is None and a.root is None:  # the repository's own run; a scratch --root never touches it
         default = Path("README.md")
         readme = default if default.is_file() and BLOCK_START in default.read_text() else None
+    docs = a.docs
+    if docs is None and a.root is None:
+        docs = [p for p in (Path("docs/results.md"), Path("docs/reproduction.md"))
+                if p.is_file() and blocks_in(p.read_text())]
     return run(a.root or DEFAULT_ROOT, a.only, a.check, a.force, a.episodes, scenes, jobs=a.jobs,
-               launcher=a.launcher, address=a.address, readme=readme)
+               launcher=a.launcher, address=a.address, readme=readme, docs=docs)
 
 
 def training_overrides(cfg: dict) -> list[str]:
@@ -397,7 +405,7 @@ def main(argv: list[str] | None = None) -> int:
               "  crowdbench eval|run ... viz.record=true [viz.episodes=[0,5]] [viz.scenes=[students003]]\n"
               "  crowdbench run|eval env=selfplay [env.n_agents=N] [env.scenario=circle|square|mixed] ...  (docs/selfplay.md)\n"
               "  crowdbench leaderboard [--check] [--force] [--only NAME] [--episodes N] [--scenes a,b] [--jobs N]\n"
-              "      [--launcher local|ray] [--address ADDR] [--root DIR] [--readme FILE]\n"
+              "      [--launcher local|ray] [--address ADDR] [--root DIR] [--readme FILE] [--docs FILE]\n"
               "  crowdbench submit <run dir> --name NAME --entry LABEL [--authors A,B] [--link URL] [--root DIR]\n"
               "  crowdbench viz <episodes.jsonl|results dir> [--episode N] [--scene S] [--grid K] [--out FILE.png]\n"
               "  crowdbench plot <run dir> [<run dir> ...] [--out FILE.png] [--smooth N]")

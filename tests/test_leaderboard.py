@@ -318,12 +318,41 @@ def test_readme_block_is_rendered_from_the_committed_results():
     results = committed_results()
     committed = render.read_block((REPO / "README.md").read_text())
     assert render.render_block(results, list(EVAL_SCENES), None) == committed
-    assert "| ORCA | 1 | 0.888 | 0.884 |" in committed and "ORCA 0.934 (1.656 dangers per episode)" in committed
+    assert "| ORCA | 1 | 0.892 | 0.884 |" in committed and "ORCA 0.935 (1.656 dangers per episode)" in committed
     (orca,) = [r for r in results if r["meta"]["submission"] == "orca"]
     orca["scenes"]["hotel"]["success_rate"]["mean"] = 0.5
     row, sentence = render.diff_rows(committed, render.render_block(results, list(EVAL_SCENES), None))
     assert row.startswith("[] row 'ORCA': differs") and "0.500" in row
-    assert sentence.startswith("[] row 'Average success") and "ORCA 0.815" in sentence  # the average moved too
+    assert sentence.startswith("[] row 'Average success") and "ORCA 0.816" in sentence  # the average moved too
+
+
+def test_docs_blocks_are_rendered_from_the_committed_results():
+    """docs/results.md's block (summary of every entry, per-metric tables of the baselines) and
+    docs/reproduction.md's paper-scene tables are what the harness renders from the committed
+    results (pure rendering, no evaluation); a changed number is caught in each."""
+    from crowdbench.envs.protocol import EVAL_SCENES
+    from crowdbench.leaderboard import render
+
+    results = committed_results()
+    docs = (REPO / "docs" / "results.md").read_text()
+    reproduction = (REPO / "docs" / "reproduction.md").read_text()
+    assert render.blocks_in(docs) == ["docs-results"]
+    assert render.blocks_in(reproduction) == ["reproduction-success", "reproduction-nav-time", "reproduction-dangers"]
+    for text in (docs, reproduction):
+        assert render.regenerate(text, results, list(EVAL_SCENES), None) == text
+    committed = render.read_block(docs, "docs-results")
+    assert "| ORCA | 1 | 0.935 | 1.656 |" in committed
+    assert "| orca | 0.892 [0.847, 0.925] | 0.884 [0.838, 0.918] |" in committed  # Wilson, from results.json
+    (orca,) = [r for r in results if r["meta"]["submission"] == "orca"]
+    orca["scenes"]["students003"]["jerk"]["mean"] = 9.0
+    (row,) = render.diff_rows(committed, render.render_docs_block(results, list(EVAL_SCENES), None))
+    assert row.startswith("[Jerk (m/s^3)] row 'orca': differs") and "9.00 [" in row
+    orca["scenes"]["hotel"]["success_rate"]["mean"] = 0.5
+    rows = render.diff_rows(committed, render.render_docs_block(results, list(EVAL_SCENES), None))
+    assert [r.split(":")[0] for r in rows] == ["[] row 'ORCA'", "[Success rate] row 'orca'", "[Jerk (m/s^3)] row 'orca'"]
+    old = render.read_block(reproduction, "reproduction-success")
+    (row,) = render.diff_rows(old, render.BLOCKS["reproduction-success"](results, list(EVAL_SCENES), None))
+    assert row.startswith("[] row 'ORCA': differs") and "0.500" in row
 
 
 def test_readme_block_written_checked_and_never_touched_by_a_scratch_root(tmp_path, monkeypatch, capsys):
@@ -344,15 +373,29 @@ def test_readme_block_written_checked_and_never_touched_by_a_scratch_root(tmp_pa
     assert "FAILED" in log[-1] and f"{readme}: [] row 'Straight to goal': differs" in log[-1]
     readme.write_text("no markers\n")
     assert run(root, readme=readme, log=log.append, **FAST) == 1 and "has no <!-- generated:results:start" in log[-1]
-    # the CLI: a --root run leaves ./README.md alone; the default root's run updates its block
+    # the CLI: a --root run leaves ./README.md and ./docs alone; the default root's run updates their blocks
     monkeypatch.chdir(tmp_path)
     readme.write_text(text)
+    (tmp_path / "docs").mkdir()
+    docs = tmp_path / "docs" / "results.md"
+    docs_text = "# Results\n\n<!-- generated:docs-results:start -->\nold\n<!-- generated:docs-results:end -->\n"
+    docs.write_text(docs_text)
     assert cli_main(["leaderboard", "--root", str(root), "--episodes", "1", "--scenes", "eth"]) == 0
-    assert readme.read_text() == text
+    assert readme.read_text() == text and docs.read_text() == docs_text
     (tmp_path / "lb").rename(tmp_path / "leaderboard")
     assert cli_main(["leaderboard", "--episodes", "1", "--scenes", "eth"]) == 0
     assert "| Straight to goal | 1 |" in readme.read_text()
-    assert "the results block of README.md" in capsys.readouterr().out
+    new_docs = docs.read_text()
+    assert "old" not in new_docs and "| Straight to goal | 1 |" in new_docs and "| straight | " in new_docs
+    out = capsys.readouterr().out
+    assert "the results block of README.md" in out and "the generated blocks of docs/results.md" in out
+    assert cli_main(["leaderboard", "--check", "--episodes", "1", "--scenes", "eth"]) == 0
+    docs.write_text(new_docs.replace("| straight | ", "| straight | 9"))
+    assert cli_main(["leaderboard", "--check", "--episodes", "1", "--scenes", "eth"]) == 1
+    assert "docs/results.md (docs-results): [Success rate] row 'straight': differs" in capsys.readouterr().out
+    docs.write_text("no markers\n")
+    assert cli_main(["leaderboard", "--docs", str(docs), "--episodes", "1", "--scenes", "eth"]) == 1
+    assert "has no <!-- generated:docs-results:start" in capsys.readouterr().out
 
 
 BOOM = '''

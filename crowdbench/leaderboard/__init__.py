@@ -2,14 +2,22 @@
 
 Modules: ``schema`` (submission.yaml fields, validation, :func:`make_submission`), ``cache``
 (fingerprint, the evaluated code closure), ``harness`` (policies via crowdbench.policies,
-evaluation, the run loop, local / Ray fan-out), ``render`` (tables, plot, README block, diffs).
+evaluation, the run loop, local / Ray fan-out), ``render`` (tables, plot, the generated blocks of the README and the docs, diffs).
 The command line is ``crowdbench leaderboard`` (crowdbench/cli.py); field reference and rules:
 docs/submitting.md.
 """
 
 from crowdbench.leaderboard.cache import EVAL_MODULES, HARNESS_VERSION, code_files, fingerprint
 from crowdbench.leaderboard.harness import LAUNCHERS, build_policy, run
-from crowdbench.leaderboard.render import BLOCK_END, BLOCK_START, diff_rows, render_block, render_readme
+from crowdbench.leaderboard.render import (
+    BLOCK_END,
+    BLOCK_START,
+    BLOCKS,
+    diff_rows,
+    render_block,
+    render_docs_block,
+    render_readme,
+)
 from crowdbench.leaderboard.schema import (
     DEFAULT_ROOT,
     PACKAGE_DIR,
@@ -20,6 +28,6 @@ from crowdbench.leaderboard.schema import (
     read_submission,
 )
 
-__all__ = ["BLOCK_END", "BLOCK_START", "DEFAULT_ROOT", "EVAL_MODULES", "HARNESS_VERSION", "LAUNCHERS", "PACKAGE_DIR",
+__all__ = ["BLOCKS", "BLOCK_END", "BLOCK_START", "DEFAULT_ROOT", "EVAL_MODULES", "HARNESS_VERSION", "LAUNCHERS", "PACKAGE_DIR",
            "REPO_DIR", "Submission", "SubmissionError", "build_policy", "code_files", "diff_rows", "fingerprint",
-           "make_submission", "read_submission", "render_block", "render_readme", "run"]
+           "make_submission", "read_submission", "render_block", "render_docs_block", "render_readme", "run"]

@@ -10,7 +10,8 @@ Layout (``--root``, default ``./leaderboard``)::
 The harness computes every number itself (``crowdbench.eval.evaluate``, the same code as
 ``crowdbench eval``); submitters only provide a yaml and, for learned entries, a state-dict
 checkpoint (``torch.load(..., weights_only=True)``). ``--check`` re-evaluates everything,
-writes nothing, and fails if the committed README (or the README block) differs.
+writes nothing, and fails if the committed README (or a generated block of the top-level README or
+the docs, ``crowdbench.leaderboard.render.BLOCKS``) differs.
 """
 
 from __future__ import annotations
@@ -235,11 +236,13 @@ def _evaluate_all(todo: list, scenes: list[str], episodes: int | None, jobs: int
 # ---------------------------------------------------------------------------------- run
 def run(root: Path = DEFAULT_ROOT, only: list[str] | None = None, check: bool = False, force: bool = False,
         episodes: int | None = None, scenes: list[str] | None = None, log=None, jobs: int = 1,
-        launcher: str = "local", address: str | None = None, readme: Path | None = None) -> int:
+        launcher: str = "local", address: str | None = None, readme: Path | None = None,
+        docs: list[Path] | None = None) -> int:
     """Validate, evaluate and render; returns the exit code (0 ok, 1 a submission failed or --check differs).
 
-    ``readme``: a file whose block between the ``generated:results`` markers is regenerated too
-    (None: no other file is touched)."""
+    ``readme``: a file whose block between the ``generated:results`` markers is regenerated too;
+    ``docs``: files whose generated blocks (``render.BLOCKS``, e.g. ``generated:docs-results`` of
+    docs/results.md) are regenerated too (None: no other file is touched)."""
     root = Path(root)
     log = log or (lambda msg: print(msg, flush=True))
     scenes = list(scenes or EVAL_SCENES)
@@ -253,13 +256,16 @@ def run(root: Path = DEFAULT_ROOT, only: list[str] | None = None, check: bool = 
     if unknown:
         log(f"crowdbench leaderboard: error: unknown submission(s) {', '.join(unknown)}; known: {', '.join(names)}")
         return 1
-    readme_text = None
-    if readme is not None:
-        readme = Path(readme)
-        readme_text = readme.read_text() if readme.is_file() else ""
-        if render.BLOCK_START not in readme_text or render.BLOCK_END not in readme_text:
-            log(f"crowdbench leaderboard: error: {readme} has no {render.BLOCK_START} ... {render.BLOCK_END} block")
+    targets: list[tuple[Path, str]] = []  # (file, its text) whose generated blocks are rendered
+    for path, names in ([(readme, ["results"])] if readme is not None else []) + \
+            [(d, [n for n in render.BLOCKS if n != "results"]) for d in docs or []]:
+        path = Path(path)
+        text = path.read_text() if path.is_file() else ""
+        if not set(render.blocks_in(text)) & set(names):
+            start, end = render.markers(names[0])
+            log(f"crowdbench leaderboard: error: {path} has no {start} ... {end} block")
             return 1
+        targets.append((path, text))
     results, rejected, missing, todo = [], [], [], []
     t_all = time.time()
 
@@ -314,32 +320,34 @@ def run(root: Path = DEFAULT_ROOT, only: list[str] | None = None, check: bool = 
     rejected.sort()
     failed = bool(rejected)
     table = render.render_readme(results, rejected, scenes, episodes, missing)
-    block = render.render_block(results, scenes, episodes)
     log(f"leaderboard: {len(results)} evaluated/cached, {len(rejected)} rejected, {time.time() - t_all:.1f} s")
     if check:
         committed = (root / "README.md").read_text() if (root / "README.md").is_file() else ""
         diffs = []
         if committed != table:
             diffs += render.diff_rows(committed, table) or ["(whitespace or layout)"]
-        if readme is not None:
-            old = render.read_block(readme_text)
-            if old != block:
-                diffs += [f"{readme}: {m}" for m in render.diff_rows(old, block) or ["(whitespace or layout)"]]
+        for path, text in targets:
+            for name in render.blocks_in(text):
+                old, new = render.read_block(text, name), render.BLOCKS[name](results, scenes, episodes)
+                if old != new:
+                    where = f"{path}" if name == "results" else f"{path} ({name})"
+                    diffs += [f"{where}: {m}" for m in render.diff_rows(old, new) or ["(whitespace or layout)"]]
         if diffs:
             log("crowdbench leaderboard --check: FAILED: the generated text differs from a fresh evaluation in "
                 f"{len(diffs)} row(s):\n  " + "\n  ".join(diffs))
             return 1
         log("crowdbench leaderboard --check: README.md matches a fresh evaluation"
-            + (f" (and the block in {readme})" if readme is not None else ""))
+            + (f" (and the generated blocks of {', '.join(str(p) for p, _ in targets)})" if targets else ""))
         return 1 if failed else 0
     (root / "README.md").write_text(table)
     if results:
         render.plot(results, scenes, root / "leaderboard.png")
     wrote = [str(root / "README.md"), str(root / "leaderboard.png")]
-    if readme is not None:
-        new = render.splice(readme_text, block)
-        if new != readme_text:
-            readme.write_text(new)
-        wrote.append(f"the results block of {readme}")
+    for path, text in targets:
+        new = render.regenerate(text, results, scenes, episodes)
+        if new != text:
+            path.write_text(new)
+        wrote.append(f"the results block of {path}" if render.blocks_in(text) == ["results"] else
+                     f"the generated blocks of {path}")
     log(f"wrote {', '.join(wrote)}")
     return 1 if failed else 0

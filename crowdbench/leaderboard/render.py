@@ -1,5 +1,6 @@
-"""Rendering: the generated leaderboard/README.md tables, the plot, the top-level README's results
-block, and row-level diffs for ``--check``. Pure functions of the results (no evaluation).
+"""Rendering: the generated leaderboard/README.md tables, the plot, the generated blocks of the
+top-level README and the docs (:data:`BLOCKS`), and row-level diffs for ``--check``. Pure functions of
+the results (no evaluation).
 """
 
 from __future__ import annotations
@@ -13,8 +14,14 @@ from crowdbench.envs.protocol import EVAL_SCENES, PAPER_SCENES, PROTOCOL_VERSION
 from crowdbench.eval import rate_ci
 from crowdbench.leaderboard.schema import KINDS
 
-BLOCK_START = "<!-- generated:results:start -->"
-BLOCK_END = "<!-- generated:results:end -->"
+
+def markers(name: str) -> tuple[str, str]:
+    """The start and end markers of the generated block ``name`` in a markdown file."""
+    return f"<!-- generated:{name}:start -->", f"<!-- generated:{name}:end -->"
+
+
+BLOCK_START, BLOCK_END = markers("results")  # the top-level README's block
+DOCS_START, DOCS_END = markers("docs-results")  # docs/results.md
 
 
 def fmt(v, digits: int) -> str:
@@ -278,20 +285,120 @@ def render_block(results: list[dict], scenes: list[str], episodes: int | None) -
     return "\n\n" + "\n".join(L) + "\n\n"
 
 
-def _bounds(text: str) -> tuple[int, int]:
-    start, end = text.find(BLOCK_START), text.find(BLOCK_END)
+def _bounds(text: str, name: str = "results") -> tuple[int, int]:
+    start_marker, end_marker = markers(name)
+    start, end = text.find(start_marker), text.find(end_marker)
     if start < 0 or end < start:
-        raise ValueError(f"no {BLOCK_START} ... {BLOCK_END} block")
-    return start + len(BLOCK_START), end
+        raise ValueError(f"no {start_marker} ... {end_marker} block")
+    return start + len(start_marker), end
 
 
-def read_block(text: str) -> str:
-    """The text between the markers (ValueError if they are missing)."""
-    a, b = _bounds(text)
+def read_block(text: str, name: str = "results") -> str:
+    """The text between the markers of block ``name`` (ValueError if they are missing)."""
+    a, b = _bounds(text, name)
     return text[a:b]
 
 
-def splice(text: str, block: str) -> str:
-    """``text`` with the block between the markers replaced by ``block``."""
-    a, b = _bounds(text)
+def splice(text: str, block: str, name: str = "results") -> str:
+    """``text`` with the block ``name`` between its markers replaced by ``block``."""
+    a, b = _bounds(text, name)
     return text[:a] + block + text[b:]
+
+
+# ---------------------------------------------------------------------------------- docs blocks
+def _subset_note(scenes: list[str], episodes: int | None) -> list[str]:
+    if episodes is None and set(scenes) == set(EVAL_SCENES):
+        return []
+    return [f"**UNOFFICIAL subset**: {episodes or 250} episodes per scene, scenes {', '.join(scenes)}.", ""]
+
+
+BASELINE_METRICS = [
+    ("success_rate", "Success rate", 3),
+    ("collision_rate", "Collision rate", 3),
+    ("timeout_rate", "Timeout rate", 3),
+    ("nav_time_s", "Navigation time (s, successful episodes)", 2),
+    ("dangers_per_episode", "Dangers per episode (steps with 0 <= d < 0.2 m)", 3),
+    ("min_clearance", "Minimum clearance (m)", 3),
+    ("path_length_ratio", "Path length ratio (successful)", 3),
+    ("jerk", "Jerk (m/s^3)", 2),
+]
+
+
+def summary_table(groups: list[list[dict]]) -> list[str]:
+    """Every entry: seeds, average success over the paper scenes and dangers per episode (single runs:
+    the mean; several seeds: mean ± sd over seeds)."""
+    lines = ["| entry | seeds | average success | dangers / episode |", "|---|---|---|---|"]
+    for g in groups:
+        lines.append(f"| {label(g)} | {len(g)} | {_group_average(g, 'success_rate', 3)[1]} | "
+                     f"{_group_average(g, 'dangers_per_episode', 3)[1]} |")
+    return lines
+
+
+def baseline_table(results: list[dict], scenes: list[str], metric: str, digits: int) -> list[str]:
+    """One row per baseline (named by its policy): every scene's mean [95% interval] from its
+    results.json, then the plain mean over the paper scenes."""
+    with_avg = all(s in scenes for s in PAPER_SCENES)
+    head = ["policy", *scenes, *(["avg (paper scenes)"] if with_avg else [])]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in results:
+        cells = [r["submission"].get("policy", r["meta"]["submission"])]
+        cells += [scene_cell(r, s, metric, digits)[1] for s in scenes]
+        if with_avg:
+            cells.append(fmt(average_cell(r, metric, digits)[0], digits))
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
+
+
+def render_docs_block(results: list[dict], scenes: list[str], episodes: int | None) -> str:
+    """docs/results.md's block (between DOCS_START and DOCS_END): the summary table of every entry and
+    the per-metric tables of the baseline submissions."""
+    groups = group_results(results)
+    baselines = [r for g in groups for r in g if r["meta"]["kind"] == "baseline"]
+    L = [*_subset_note(scenes, episodes), *summary_table(groups), "", "## Baselines", "",
+         ("From `leaderboard/results/<name>/results.json` of the baseline submissions "
+          f"({', '.join(r['meta']['submission'] for r in baselines)}): {episodes or 250} episodes per scene, "
+          "mean [95% interval] (Wilson for rates, normal approximation for means); the last column is the "
+          "mean over the paper scenes.")]
+    for metric, title, digits in BASELINE_METRICS:
+        L += ["", f"### {title}", "", *baseline_table(baselines, scenes, metric, digits)]
+    return "\n\n" + "\n".join(L) + "\n\n"
+
+
+def paper_scene_block(metric: str, digits: int):
+    """A block of docs/reproduction.md: every entry on the paper scenes and their average, means only
+    (single runs) or mean ± sd over seeds (the rows set against the paper's numbers)."""
+    def render(results: list[dict], scenes: list[str], episodes: int | None) -> str:
+        paper = [s for s in scenes if s in PAPER_SCENES]
+        L = [*_subset_note(scenes, episodes), *metric_table(group_results(results), paper, metric, digits,
+                                                             intervals=False)]
+        return "\n\n" + "\n".join(L) + "\n\n"
+
+    return render
+
+
+# name -> renderer(results, scenes, episodes); a file's block ``name`` lies between ``markers(name)``
+BLOCKS = {
+    "results": render_block,
+    "docs-results": render_docs_block,
+    "reproduction-success": paper_scene_block("success_rate", 3),
+    "reproduction-nav-time": paper_scene_block("nav_time_s", 2),
+    "reproduction-dangers": paper_scene_block("dangers_per_episode", 3),
+}
+
+
+def blocks_in(text: str) -> list[str]:
+    """The names of the generated blocks ``text`` holds (both markers, in order)."""
+    out = []
+    for name in BLOCKS:
+        start, end = markers(name)
+        a, b = text.find(start), text.find(end)
+        if 0 <= a < b:
+            out.append(name)
+    return out
+
+
+def regenerate(text: str, results: list[dict], scenes: list[str], episodes: int | None) -> str:
+    """``text`` with every generated block it holds rendered afresh from ``results``."""
+    for name in blocks_in(text):
+        text = splice(text, BLOCKS[name](results, scenes, episodes), name)
+    return text
