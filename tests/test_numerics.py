@@ -1,0 +1,36 @@
+"""Official evaluation runs on one numerical path whatever the caller's CPU settings.
+
+gatedgcn_ddpg_s1 on eth is a shipped checkpoint whose episodes depend on the kernels when nothing is
+pinned: on an AVX-512 machine, ATen's avx512 kernels or MKL's native code path turn one of its 250
+episodes into a success (benchmarks/bench_numerics.py). The ``crowdbench`` entry point pins the path
+(crowdbench/numerics.py), so the three settings below must give the same episodes.jsonl.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+CKPT = ROOT / "leaderboard" / "submissions" / "gatedgcn_ddpg_s1" / "checkpoint.pt"
+
+
+def test_episodes_are_the_same_under_every_cpu_capability(tmp_path):
+    episodes = {}
+    for cap in ("default", "avx2", "avx512"):
+        env = {**os.environ, "ATEN_CPU_CAPABILITY": cap, "MKL_CBWR": "AUTO", "OMP_NUM_THREADS": "1"}
+        out = tmp_path / cap
+        p = subprocess.run([sys.executable, "-m", "crowdbench", "eval", f"policy={CKPT}", "eval.scenes=[eth]",
+                            "eval.save_episodes=true", f"out={out}"], env=env, capture_output=True, text=True,
+                           timeout=600)
+        assert p.returncode == 0, p.stderr[-2000:]
+        assert json.loads((out / "results.json").read_text())["numerics"]["cpu_capability"] == "DEFAULT"
+        episodes[cap] = (out / "episodes.jsonl").read_text()
+    assert episodes["avx2"] == episodes["default"] and episodes["avx512"] == episodes["default"]
+    committed = json.loads((ROOT / "leaderboard" / "results" / "gatedgcn_ddpg_s1" / "results.json").read_text())
+    outcomes = "".join({"success": "S", "collision": "C", "timeout": "T"}[json.loads(line)["outcome"]]
+                       for line in episodes["default"].splitlines())
+    assert outcomes == committed["episode_outcomes"]["eth"]  # the leaderboard's numbers are this path's
