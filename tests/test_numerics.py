@@ -25,7 +25,7 @@ def test_episodes_are_the_same_under_every_cpu_capability(tmp_path):
         out = tmp_path / cap
         p = subprocess.run([sys.executable, "-m", "crowdbench", "eval", f"policy={CKPT}", "eval.scenes=[eth]",
                             "eval.save_episodes=true", f"out={out}"], env=env, capture_output=True, text=True,
-                           timeout=600)
+                           timeout=600, check=False)
         assert p.returncode == 0, p.stderr[-2000:]
         assert json.loads((out / "results.json").read_text())["numerics"]["cpu_capability"] == "DEFAULT"
         episodes[cap] = (out / "episodes.jsonl").read_text()
