@@ -85,11 +85,10 @@ class DurationEstimate:
     measured seconds per collected frame and per update x what remains of each. Timing only: no RNG."""
 
     def __init__(self, frames: int, utd: float, warmup: int, write):
-        self.frames, self.utd, self.write = frames, utd, write
+        self.frames, self.write = frames, write
         self.updates = max(0, int(utd * (frames - warmup)))
         self.frame_s = self.update_s = 0.0
         self.seen = self.n_frames = self.n_updates = self.update_batches = 0
-        self.done = False
         self.t = time.perf_counter()
         write(f"budget: {frames:,} frames, ~{self.updates:,} updates (the expected duration follows the first updates)")
 
@@ -107,8 +106,7 @@ class DurationEstimate:
         self.n_updates += n
         self.update_batches += 1
         self.t = now
-        if self.update_batches == 2 and not self.done:  # the first batch pays one-off allocations
-            self.done = True
+        if self.update_batches == 2:  # once; the first batch pays one-off allocations
             per_frame, per_update = self.frame_s / self.n_frames, self.update_s / self.n_updates
             left = (self.frames - self.seen) * per_frame + max(0, self.updates - self.n_updates) * per_update
             self.write(f"expected duration: ~{left / 60:.0f} min more ({1 / per_frame:,.0f} frames/s collecting, "
