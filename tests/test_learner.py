@@ -38,8 +38,8 @@ def critic_loss(cfg, sample) -> float:
 def test_weighted_loss_is_the_weighted_mean(algo):
     """With weights one-hot at k the weighted critic loss is transition k's own loss; with uniform
     weights it is the plain mean; without per_weights the weights are ignored."""
-    cfg_w = compose([f"algo={algo}", *SMALL, "algo.per_weights=true"])
-    cfg_plain = compose([f"algo={algo}", *SMALL])
+    cfg_w = compose([f"algo={algo}", *SMALL, "algo.replay=prioritized", "algo.per_weights=true"])
+    cfg_plain = compose([f"algo={algo}", *SMALL, "algo.replay=prioritized"])
     sample = sampled_batch(cfg_plain)
     n, k = sample.batch_size[0], 5
     assert sample["priority_weight"].shape == (n,)
@@ -59,7 +59,7 @@ def test_weighted_loss_is_the_weighted_mean(algo):
 
 def test_per_weights_train_and_need_per(tmp_path):
     for algo in ("td3", "sac"):
-        cfg = compose([f"algo={algo}", *SMALL, "algo.per_weights=true", "train.frames_per_batch=64",
+        cfg = compose([f"algo={algo}", *SMALL, "algo.replay=prioritized", "algo.per_weights=true", "train.frames_per_batch=64",
                        "algo.warmup=128", "train.utd=0.125", "train.total_frames=256"])
         stats = train(cfg, tmp_path / algo, progress=False)
         assert stats["updates"] > 0
