@@ -275,10 +275,7 @@ def render_block(results: list[dict], scenes: list[str], episodes: int | None) -
     """The top-level README's results block (between BLOCK_START and BLOCK_END): the success table,
     means only (single runs) or mean ± sd over seeds, and the summary sentence."""
     groups = group_results(results)
-    L = []
-    if episodes is not None or set(scenes) != set(EVAL_SCENES):
-        L += [f"**UNOFFICIAL subset**: {episodes or 250} episodes per scene, scenes {', '.join(scenes)}.", ""]
-    L += metric_table(groups, scenes, "success_rate", 3, intervals=False)
+    L = [*_subset_note(scenes, episodes), *metric_table(groups, scenes, "success_rate", 3, intervals=False)]
     sentence = summary_sentence(groups) if all(s in scenes for s in PAPER_SCENES) else ""
     if sentence:
         L += ["", sentence]
