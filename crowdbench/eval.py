@@ -8,14 +8,16 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import torch
 
-from crowdbench.data.scenes import check_scene, load_scene
-from crowdbench.envs.core import OUTCOMES, SUCCESS, CrowdSim, SimConfig
-from crowdbench.envs.policy import Policy, obs_tensordict
+from crowdbench.data.scenes import check_scene
+from crowdbench.envs.core import OUTCOMES, RUNNING, SUCCESS, SimConfig
+from crowdbench.envs.factory import replay_world
+from crowdbench.envs.policy import ACTION, OBS, Policy
+from crowdbench.envs.torchrl_env import CrowdEnv
 from crowdbench.envs.protocol import PAPER_SCENES, PROTOCOL_VERSION, ProtocolSpec, load_episodes
 from crowdbench.numerics import describe
 
@@ -57,44 +59,69 @@ def select_episodes(saved: dict, n: int | None) -> list[dict]:
 
 
 @torch.no_grad()
-def rollout(policy: Policy, scene: str, episodes: list[dict], cfg: SimConfig, recorder=None) -> dict:
-    """Run ``episodes`` of ``scene`` in one batch; return per-step traces ``[T, B]``.
+def drive(env: CrowdEnv, policy: Policy, recorder=None, on_reset=None, on_step=None) -> None:
+    """The evaluation loop of every protocol: reset ``env`` (its fixed episode list, one episode per
+    environment), then step it with ``policy`` until every agent is done or the time limit.
 
-    ``recorder(sim, td, action)`` (e.g. :class:`crowdbench.viz.record.SceneRecorder`), if given, is
-    called before every step; its optional ``after_step(sim, info)`` after it and ``close()`` at the end.
+    ``on_reset(world)`` sees the start state, ``on_step(world, info)`` collects traces after every step;
+    ``recorder(world, td, action)`` (e.g. :class:`crowdbench.viz.record.SceneRecorder`), if given, is
+    called before every step, its optional ``after_step(world, info)`` after it and ``close()`` at the end. Finished episodes stay frozen
+    (no reset), so episode ``i`` of the list is environment ``i`` throughout.
     """
-    sim = CrowdSim(load_scene(scene, cfg.dt, cfg.time_base), len(episodes), cfg)
-    B = sim.B
-    t0 = torch.tensor([e["t0"] for e in episodes])
-    angle = torch.tensor([e["angle"] for e in episodes], dtype=torch.float64)
-    everyone = torch.ones(B, dtype=torch.bool)
-    sim.reset(everyone, t0, angle)
+    world = env.world
+    td = env.reset()
+    everyone = torch.ones(world.B, dtype=torch.bool)
     policy.reset(everyone)
     if getattr(policy, "privileged", False):  # the oracle: plans from the scene's future (docs/protocol.md, "Oracle")
-        policy.plan(sim)
-    xy, clear, swept, reward, active = [sim.pos[:, 0].clone()], [], [], [], []
-    clear0 = sim.min_clearance()[:, 0]
-    for _ in range(cfg.time_limit):
-        td = obs_tensordict(sim.observe(policy.frame), B)
-        action = policy.act(td)
+        policy.plan(world)
+    if on_reset is not None:
+        on_reset(world)
+    for _ in range(world.cfg.time_limit):
+        obs = td.select(OBS)
+        action = policy.act(obs)
         if recorder is not None:
-            recorder(sim, td, action)
-        info = sim.step(action, frame=policy.frame)
+            recorder(world, obs, action)
+        td.set(ACTION, action)
+        td = env.step(td).get("next")
+        info = env.last_info
         if recorder is not None and hasattr(recorder, "after_step"):
-            recorder.after_step(sim, info)
-        xy.append(sim.pos[:, 0].clone())
+            recorder.after_step(world, info)
+        if on_step is not None:
+            on_step(world, info)
+        if not (world.outcome == RUNNING).any():
+            break
+    if recorder is not None and hasattr(recorder, "close"):
+        recorder.close()
+
+
+def rollout(policy: Policy, scene: str, episodes: list[dict], cfg: SimConfig, recorder=None) -> dict:
+    """Run ``episodes`` of ``scene`` in one batch through the env; return per-step traces ``[T, B]``."""
+    world, scenario = replay_world(scene, len(episodes), replace(cfg, frame=policy.frame))
+    return robot_traces(CrowdEnv(world, scenario, episodes=scenario.from_list(episodes)), policy, recorder)
+
+
+def robot_traces(env: CrowdEnv, policy: Policy, recorder=None) -> dict:
+    """Traces ``[T, B]`` of robot 0 of every environment of ``env`` driven by ``policy``."""
+    world = env.world
+    xy, clear, swept, reward, active = [], [], [], [], []
+
+    def on_step(w, info):
+        xy.append(w.pos[:, 0].clone())
         clear.append(info.clearance[:, 0])
         swept.append(info.swept_clearance[:, 0])
         reward.append(info.reward[:, 0])
         active.append(info.active[:, 0])
-        if not (sim.outcome == 0).any():
-            break
-    if recorder is not None and hasattr(recorder, "close"):
-        recorder.close()
+
+    first = {}
+
+    def on_reset(w):
+        first.update(xy=w.pos[:, 0].clone(), clearance0=w.min_clearance()[:, 0])
+
+    drive(env, policy, recorder, on_reset, on_step)
     return {
-        "xy": torch.stack(xy), "clearance": torch.stack(clear), "swept": torch.stack(swept),
-        "reward": torch.stack(reward), "active": torch.stack(active), "outcome": sim.outcome[:, 0].clone(),
-        "clearance0": clear0, "start": sim.start[:, 0], "goal": sim.goal[:, 0],
+        "xy": torch.stack([first["xy"], *xy]), "clearance": torch.stack(clear), "swept": torch.stack(swept),
+        "reward": torch.stack(reward), "active": torch.stack(active), "outcome": world.outcome[:, 0].clone(),
+        "clearance0": first["clearance0"], "start": world.start[:, 0], "goal": world.goal[:, 0],
     }
 
 

@@ -20,42 +20,41 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import torch
 
 from crowdbench.envs.core import COLLISION, OUTCOMES, SUCCESS
-from crowdbench.envs.policy import Policy, obs_tensordict
-from crowdbench.envs.selfplay import SelfPlayConfig, SelfPlaySim, episode_set
-from crowdbench.eval import mean_ci, rate_ci
+from crowdbench.envs.factory import selfplay_world
+from crowdbench.envs.policy import Policy
+from crowdbench.envs.selfplay import SelfPlayConfig, episode_set
+from crowdbench.envs.torchrl_env import CrowdEnv
+from crowdbench.eval import drive, mean_ci, rate_ci
 
 PROTOCOL = "selfplay-v1"
 
 
-@torch.no_grad()
-def rollout(policy: Policy, cfg: SelfPlayConfig, episodes: tuple) -> dict:
-    """Run all ``episodes`` (start, goal ``[E, A, 2]``, t0 ``[E]``) in one batch; traces ``[T, E, A]``."""
-    start, goal, t0 = episodes
-    sim = SelfPlaySim(start.shape[0], cfg)
-    everyone = torch.ones(sim.B, dtype=torch.bool)
-    sim.reset(everyone, start, goal, t0)
-    policy.reset(everyone)
-    xy, active, agent_clear, clear = [sim.pos.clone()], [], [], []
-    pairs = torch.zeros(sim.B, sim.A, sim.A, dtype=torch.bool)
-    for _ in range(cfg.time_limit):
-        action = policy.act(obs_tensordict(sim.observe(policy.frame), sim.B))
-        info = sim.step(action, frame=policy.frame)
-        xy.append(sim.pos.clone())
+def rollout(policy: Policy, cfg: SelfPlayConfig, episodes: dict) -> dict:
+    """Run all ``episodes`` (``start``, ``goal`` ``[E, A, 2]``, ``t0`` ``[E]``) in one batch through the env;
+    traces ``[T, E, A]``."""
+    world, scenario = selfplay_world(replace(cfg, frame=policy.frame), len(episodes["start"]))
+    env = CrowdEnv(world, scenario, episodes=episodes)
+    xy, active, agent_clear, clear = [], [], [], []
+    pairs = torch.zeros(world.B, world.A, world.A, dtype=torch.bool)
+
+    def on_step(w, info):
+        nonlocal pairs
+        xy.append(w.pos.clone())
         active.append(info.active)
         agent_clear.append(info.extra["agent_clearance"])
         clear.append(info.clearance)
         pairs |= info.extra["pair_collision"]
-        if not (sim.outcome == 0).any():
-            break
+
+    drive(env, policy, on_reset=lambda w: xy.append(w.pos.clone()), on_step=on_step)
     return {"xy": torch.stack(xy), "active": torch.stack(active), "agent_clearance": torch.stack(agent_clear),
-            "clearance": torch.stack(clear), "outcome": sim.outcome.clone(), "pairs": pairs,
-            "start": sim.start.clone(), "goal": sim.goal.clone()}
+            "clearance": torch.stack(clear), "outcome": world.outcome.clone(), "pairs": pairs,
+            "start": world.start.clone(), "goal": world.goal.clone()}
 
 
 def metrics(tr: dict, cfg: SelfPlayConfig) -> dict:

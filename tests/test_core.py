@@ -11,10 +11,10 @@ from crowdbench.envs.core import (
     RUNNING,
     SUCCESS,
     TIMEOUT,
-    CrowdSim,
     SimConfig,
     segment_min_distance,
 )
+from worlds import replay_sim, reset_v1
 
 
 def toy_scene(tracks, n_steps=12, dt=1.0):
@@ -38,8 +38,8 @@ def toy_scene(tracks, n_steps=12, dt=1.0):
 
 def sim_for(scene, angle=math.pi, radius=0.5, time_limit=5, batch=1, **kw):
     cfg = SimConfig(dt=scene.dt, start_radius=radius, time_limit=time_limit, **kw)
-    sim = CrowdSim(scene, batch, cfg)
-    sim.reset(torch.ones(batch, dtype=torch.bool), torch.zeros(batch, dtype=torch.long), torch.full((batch,), angle))
+    sim = replay_sim(scene, batch, cfg)
+    reset_v1(sim, torch.ones(batch, dtype=torch.bool), torch.zeros(batch, dtype=torch.long), torch.full((batch,), angle))
     return sim
 
 
@@ -132,8 +132,8 @@ def test_empty_scene_runs():
     # and a real empty stretch of ETH
     eth = load_scene("eth")
     k = int((eth.count() == 0).nonzero()[0, 0])
-    sim = CrowdSim(eth, 1)
-    sim.reset(torch.tensor([True]), torch.tensor([k]), torch.tensor([0.0]))
+    sim = replay_sim(eth, 1)
+    reset_v1(sim, torch.tensor([True]), torch.tensor([k]), torch.tensor([0.0]))
     assert sim.observe()["humans_mask"].sum() == 0
     assert sim.step(torch.zeros(1, 1, 2)).outcome.item() == RUNNING
 
@@ -168,12 +168,12 @@ def test_sensing_range():
 
 def test_partial_reset_by_mask():
     scene = load_scene("students001")
-    sim = CrowdSim(scene, 3)
-    sim.reset(torch.ones(3, dtype=torch.bool), torch.tensor([0, 10, 20]), torch.zeros(3))
+    sim = replay_sim(scene, 3)
+    reset_v1(sim, torch.ones(3, dtype=torch.bool), torch.tensor([0, 10, 20]), torch.zeros(3))
     sim.step(torch.ones(3, 1, 2) * 0.5)
     before = sim.pos.clone()
-    sim.reset(torch.tensor([False, True, False]), torch.tensor([0, 50, 0]), torch.full((3,), math.pi))
+    reset_v1(sim, torch.tensor([False, True, False]), torch.tensor([0, 50, 0]), torch.full((3,), math.pi))
     assert torch.equal(sim.pos[[0, 2]], before[[0, 2]])
     assert sim.t.tolist() == [1, 50, 21] and sim.steps.tolist() == [1, 0, 1]
     with pytest.raises(ValueError, match="start index"):
-        sim.reset(torch.tensor([True, False, False]), torch.tensor([10_000, 0, 0]), torch.zeros(3))
+        reset_v1(sim, torch.tensor([True, False, False]), torch.tensor([10_000, 0, 0]), torch.zeros(3))

@@ -13,7 +13,6 @@ import yaml
 from tensordict import TensorDict
 
 from crowdbench.data.scenes import load_scene
-from crowdbench.envs.core import CrowdSim
 from crowdbench.envs.policy import ACTION, OBS
 from crowdbench.models import ENCODERS, make_encoder
 from crowdbench.models.graph import build_graph, cap_binding
@@ -25,6 +24,7 @@ from crowdbench.models.heads import (
     critic_module,
     prepare_batch,
 )
+from worlds import replay_sim, reset_v1
 
 CONFIGS = Path(__file__).resolve().parents[1] / "crowdbench" / "conf" / "encoder"
 SMALL = {"gatedgcn": {"dim": 16}, "gcn": {"dim": 16}, "mlp": {"dim": 16, "hidden": [32]}}
@@ -36,10 +36,10 @@ def real_obs():
     """Real STUDENTS001 observations a few steps into episodes: [B=12, A=1, ...]."""
     torch.manual_seed(0)
     b = 12
-    sim = CrowdSim(load_scene("students001"), b)
+    sim = replay_sim(load_scene("students001"), b)
     t0 = torch.linspace(0, sim.last_start, b).long()
     ang = torch.linspace(0, 2 * math.pi, b + 1)[:-1]
-    sim.reset(torch.ones(b, dtype=torch.bool), t0, ang)
+    reset_v1(sim, torch.ones(b, dtype=torch.bool), t0, ang)
     for _ in range(6):
         sim.step(torch.tensor([1.0, 0.0]).expand(b, 1, 2))
     return sim.observe()

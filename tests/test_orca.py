@@ -11,8 +11,9 @@ import torch
 from crowdbench.baselines.orca import ORCA
 from crowdbench.baselines.straight import StraightToGoal
 from crowdbench.data import load_scene
-from crowdbench.envs.core import COLLISION, RUNNING, SUCCESS, CrowdSim
+from crowdbench.envs.core import COLLISION, RUNNING, SUCCESS
 from crowdbench.envs.policy import obs_tensordict
+from worlds import replay_sim, reset_v1
 
 DT, V_MAX, RADII = 0.25, 1.0, 0.2 + 0.1
 
@@ -174,8 +175,8 @@ def test_batch_equals_single_calls():
 
 def test_actions_follow_the_observation_frame():
     # the same situation observed in the world frame and in the rotate frame gives the same world velocity
-    sim = CrowdSim(load_scene("students003"), 4)
-    sim.reset(
+    sim = replay_sim(load_scene("students003"), 4)
+    reset_v1(sim, 
         torch.ones(4, dtype=torch.bool), torch.tensor([40, 200, 400, 600]), torch.tensor([0.3, 1.9, 3.5, 5.0])
     )
     rotate = ORCA(perturb=0.0).act(obs_tensordict(sim.observe("rotate"), 4))
@@ -195,9 +196,9 @@ def test_rejects_bad_parameters():
 
 
 # --------------------------------------------------------------------------- end to end
-def run_episodes(policy, sim: CrowdSim, t0, angle, steps=100):
+def run_episodes(policy, sim, t0, angle, steps=100):
     batch = sim.B
-    sim.reset(torch.ones(batch, dtype=torch.bool), t0, angle)
+    reset_v1(sim, torch.ones(batch, dtype=torch.bool), t0, angle)
     min_clear = torch.full((batch,), math.inf)
     for _ in range(steps):
         running = (sim.outcome == RUNNING).squeeze(-1)
@@ -211,7 +212,7 @@ def run_episodes(policy, sim: CrowdSim, t0, angle, steps=100):
 
 def test_end_to_end_students003_fewer_collisions_than_straight():
     batch = 16
-    sim = CrowdSim(load_scene("students003"), batch)
+    sim = replay_sim(load_scene("students003"), batch)
     t0 = torch.linspace(0, sim.last_start, batch + 2).long()[1:-1]  # fixed, spread over the recording
     angle = torch.arange(batch) * 2.399963  # golden-angle sequence around the circle
     orca_out, orca_clear = run_episodes(ORCA(), sim, t0, angle)

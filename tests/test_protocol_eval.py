@@ -17,6 +17,7 @@ from crowdbench.envs.protocol import (
     protocol_path,
 )
 from crowdbench.eval import evaluate, mean_ci, rate_ci
+from worlds import replay_sim, reset_v1
 
 SPEC_KEYS = ["protocol", "scene", "episode", "start_time_s", "dt", "start", "goal", "robot_xy", "outcome",
              "nav_time_s", "danger_steps", "min_clearance"]
@@ -128,10 +129,9 @@ def test_collisions_recheckable_from_raw_positions(tmp_path):
 
 
 def test_train_sampler_avoids_occupied_starts():
-    from crowdbench.envs.core import CrowdSim
-
+    
     scene = load_scene("students001")
-    sim = CrowdSim(scene, 1)
+    sim = replay_sim(scene, 1)
 
     def occupied(t0, angle):
         c = scene.centre.double()

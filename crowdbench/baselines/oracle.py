@@ -4,7 +4,7 @@ Replay is deterministic (humans never react to the robot), so the scene tensors 
 human's position at every grid step. Before the first step of an evaluation batch the oracle
 plans all episodes at once with a **space-time beam search** over a discrete set of robot
 velocities, using the simulator's own motion model and swept collision test
-(:class:`~crowdbench.envs.core.CrowdSim` ``clip_action`` and
+(:class:`~crowdbench.envs.world.World` ``clip_action`` and
 :func:`~crowdbench.envs.core.segment_min_distance`), then replays its plan through the normal
 :class:`~crowdbench.envs.policy.Policy` interface. The simulator and the metrics code are the
 same as for every other policy, so its numbers are directly comparable — but it is an upper
@@ -41,7 +41,8 @@ import math
 import torch
 from tensordict import TensorDict
 
-from crowdbench.envs.core import CrowdSim, segment_min_distance
+from crowdbench.envs.core import segment_min_distance
+from crowdbench.envs.world import World
 from crowdbench.envs.policy import OBS, Policy
 
 PLANNED_SUCCESS, PLANNED_COLLISION, PLANNED_TIMEOUT = 1, 2, 3
@@ -73,7 +74,7 @@ class Oracle(Policy):
         self._k = 0
 
     # ------------------------------------------------------------------ Policy interface
-    def plan(self, sim: CrowdSim) -> None:
+    def plan(self, sim: World) -> None:
         """Privileged hook, called by :func:`crowdbench.eval.rollout` right after the reset:
         plan every episode of the batch from the simulator's scene, start indices, starts and goals."""
         plans, outcomes = [], []
@@ -114,7 +115,7 @@ class Oracle(Policy):
         return torch.cat((moves, torch.zeros_like(land).unsqueeze(-2), land.unsqueeze(-2)), -2)
 
     @torch.no_grad()
-    def _search(self, sim: CrowdSim, t0: torch.Tensor, start: torch.Tensor, goal: torch.Tensor):
+    def _search(self, sim: World, t0: torch.Tensor, start: torch.Tensor, goal: torch.Tensor):
         cfg, scene = sim.cfg, sim.scene
         dt, v_max, T = cfg.dt, cfg.v_max, cfg.time_limit
         rs, r_goal, danger_dist = sim.radius_sum, cfg.robot_radius, cfg.danger_dist

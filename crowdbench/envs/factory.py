@@ -1,12 +1,29 @@
-"""One place that turns the ``env`` config into a TorchRL env: replay (single robot) or self-play."""
+"""The one place that turns the ``env`` config into a world, a scenario and the envs over them.
+
+``env.name`` picks the protocol: ``replay`` (one robot among replayed ETH/UCY pedestrians,
+protocol v1), ``selfplay`` (``n_agents`` learning agents, optional replayed background) or
+``crowdnav`` (one robot among ORCA or social-force humans, CrowdNav's circle and square crossing).
+"""
 
 from __future__ import annotations
 
+from crowdbench.data.scenes import Scene, load_scene
 from crowdbench.envs.core import SimConfig
+from crowdbench.envs.humans.replay import NoCrowd, ReplayCrowd
+from crowdbench.envs.world import World
+
+ENVS = ("replay", "selfplay", "crowdnav")
+
+
+def env_name(env_cfg) -> str:
+    name = str(env_cfg.get("name", "replay"))
+    if name not in ENVS:
+        raise ValueError(f"unknown env.name {name!r}; valid: {', '.join(ENVS)}")
+    return name
 
 
 def is_selfplay(env_cfg) -> bool:
-    return str(env_cfg.get("name", "replay")) == "selfplay"
+    return env_name(env_cfg) == "selfplay"
 
 
 def selfplay_config(env_cfg, **overrides):
@@ -15,20 +32,84 @@ def selfplay_config(env_cfg, **overrides):
     return SelfPlayConfig(**{**SelfPlayConfig.fields_of(env_cfg), **overrides})
 
 
+def replay_scene(name: str, cfg: SimConfig) -> Scene:
+    scene = load_scene(name, cfg.dt, cfg.time_base)  # ValueError on an unknown scene
+    if scene.n_steps <= cfg.time_limit + 1:
+        raise ValueError(f"scene {scene.name} is shorter than the time limit ({cfg.time_limit} steps)")
+    return scene
+
+
+def replay_world(scene: str | Scene, batch: int, cfg: SimConfig | None = None):
+    """``(world, scenario)`` of protocol v1 on ``scene``: one robot, replayed humans."""
+    from crowdbench.envs.scenarios import ReplayScenario
+
+    cfg = cfg or SimConfig()
+    scene = replay_scene(scene, cfg) if isinstance(scene, str) else scene
+    return World(batch, cfg, ReplayCrowd(scene, batch, cfg.time_limit)), ReplayScenario(scene, cfg)
+
+
+def selfplay_world(cfg, batch: int):
+    """``(world, scenario)`` of self-play with ``cfg`` (a :class:`SelfPlayConfig`)."""
+    from crowdbench.envs.selfplay import SelfPlayScenario, background_scene
+
+    scene = background_scene(cfg)
+    crowd = ReplayCrowd(scene, batch, cfg.time_limit) if scene is not None else NoCrowd(batch)
+    world = World(batch, cfg, crowd, n_agents=cfg.n_agents, interact=True, done_agents=cfg.done_agents)
+    return world, SelfPlayScenario(cfg, scene)
+
+
+def crowdnav_world(cfg, batch: int):
+    """``(world, scenario)`` of the CrowdNav protocol with ``cfg`` (a :class:`CrowdNavConfig`)."""
+    from crowdbench.envs.crowdnav import CrowdNavScenario, crowdnav_crowd
+
+    return World(batch, cfg, crowdnav_crowd(cfg, batch)), CrowdNavScenario(cfg)
+
+
+def sim_config(env_cfg, **overrides):
+    """The typed simulator config of ``env_cfg`` (:class:`SimConfig` or its per-protocol subclass)."""
+    name = env_name(env_cfg)
+    if name == "selfplay":
+        return selfplay_config(env_cfg, **overrides)
+    if name == "crowdnav":
+        from crowdbench.envs.crowdnav import CrowdNavConfig
+
+        return CrowdNavConfig(**{**CrowdNavConfig.fields_of(env_cfg), **overrides})
+    return SimConfig(**{**SimConfig.fields_of(env_cfg), **overrides})
+
+
+def make_world(env_cfg, batch: int, **overrides):
+    """``(world, scenario)`` for the ``env`` config (``overrides``: simulator settings, e.g. ``frame``)."""
+    name, cfg = env_name(env_cfg), sim_config(env_cfg, **overrides)
+    if name == "selfplay":
+        return selfplay_world(cfg, batch)
+    if name == "crowdnav":
+        return crowdnav_world(cfg, batch)
+    return replay_world(str(env_cfg.scene), batch, cfg)
+
+
 def make_env(cfg, progress_reward: float = 0.0, human_dropout: float = 0.0):
-    """``CrowdEnv`` on ``env.scene`` (``env=replay``) or ``SelfPlayEnv`` (``env=selfplay``), ``env.batch`` wide.
+    """The TorchRL env of ``cfg.env``, ``env.batch`` wide, seeded with ``cfg.seed``.
 
-    ``progress_reward``: the training-only shaping of both envs (``train.progress_reward``);
-    ``human_dropout``: the replay env's training-only density randomisation (``train.human_dropout``).
+    ``progress_reward`` (``train.progress_reward``) and ``human_dropout`` (``train.human_dropout``)
+    are training-only transforms (:mod:`crowdbench.envs.transforms`).
     """
-    if is_selfplay(cfg.env):
-        from crowdbench.envs.selfplay_env import SelfPlayEnv
+    from torchrl.envs import Compose, TransformedEnv
 
-        if human_dropout:
-            raise ValueError("train.human_dropout applies to the replay env only (self-play has env.background)")
-
-        return SelfPlayEnv(cfg.env.batch, selfplay_config(cfg.env), seed=cfg.seed, progress_reward=progress_reward)
     from crowdbench.envs.torchrl_env import CrowdEnv
+    from crowdbench.envs.transforms import HumanDropout, ProgressReward
 
-    return CrowdEnv(cfg.env.scene, cfg.env.batch, SimConfig(**SimConfig.fields_of(cfg.env)), seed=cfg.seed,
-                    progress_reward=progress_reward, human_dropout=human_dropout)
+    world, scenario = make_world(cfg.env, int(cfg.env.batch))
+    env = CrowdEnv(world, scenario, seed=cfg.seed)
+    transforms = []
+    if human_dropout:
+        transforms.append(HumanDropout(human_dropout, cfg.seed, world.M, world.Mh))
+    if progress_reward:
+        transforms.append(ProgressReward(progress_reward))
+    return TransformedEnv(env, Compose(*transforms)) if transforms else env
+
+
+def make_parallel_env(env_cfg, **overrides):
+    """The PettingZoo ``ParallelEnv`` (one environment) of ``env_cfg``."""
+    from crowdbench.envs.pettingzoo_env import CrowdParallelEnv
+
+    return CrowdParallelEnv(*make_world(env_cfg, 1, **overrides))

@@ -116,7 +116,7 @@ def load_episodes(scene_name: str) -> dict:
 class TrainSampler:
     """Random start time and angle (the training distribution, SPEC section 3).
 
-    With ``is_free(t0, angle) -> [n] bool`` (e.g. ``CrowdSim.start_is_free``), draws whose
+    With ``is_free(t0, angle) -> [n] bool`` (e.g. ``ReplayScenario.start_is_free``), draws whose
     start point is occupied are redrawn, as the evaluation lists avoid them.
     """
 

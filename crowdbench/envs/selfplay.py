@@ -1,25 +1,10 @@
-"""Batched self-play simulator: ``B`` environments, ``A`` learning agents each, optional replayed background.
+"""Self-play: ``A`` learning agents per environment with their own goals, optional replayed background.
 
 Every agent is a robot of the single-robot protocol (radius ``robot_radius``, holonomic,
-``v_max``) with its own goal; all agents act at once (one ``[B, A, 2]`` action tensor). The
-geometry is core's (:mod:`crowdbench.envs.core`): surface clearance, swept collision test over
-the step's linear motion of *both* bodies (:func:`segment_min_distance`), danger
-``0 <= d < danger_dist``, success within ``robot_radius`` of the goal, reward of SPEC section 3.
-
-Self-play additions:
-
-- agent-agent clearance ``d = |p_i - p_j| - 2 robot_radius``; a swept ``d < 0`` during a step
-  is a collision of *both* agents (``StepInfo.extra["pair_collision"]`` ``[B, A, A]``);
-- the danger penalty uses the nearest body, agent or background human;
-- an agent that succeeds, collides or times out is *done*: it no longer moves and gets zero
-  reward, while the other agents go on; tensors keep their ``[B, A]`` shape (masked, not
-  removed). ``done_agents="vanish"`` (default): a done agent leaves the scene (others
-  neither sense it nor collide with it, like a pedestrian leaving through its goal);
-  ``"obstacle"``: it stays where it stopped as a static body that is sensed and can be hit;
-- observation of agent ``i`` is the single-robot layout (:mod:`crowdbench.envs.policy`):
-  its own row ``robot [B, A, 6]`` and ``humans [B, A, S, 4]`` with ``S = A + M`` slots, the
-  ``A`` agents first (its own slot and absent agents masked out), then the ``M`` background
-  humans; so one shared-weight graph policy sees every other agent as a neighbour node.
+``v_max``); all act at once from one ``[B, A, 2]`` action tensor. The world
+(:mod:`crowdbench.envs.world`, ``interact=True``) makes the agents bodies for each other:
+agent-agent collisions, the nearest-body danger penalty, done agents that vanish or stay as
+obstacles (``done_agents``) and the ``A + M``-slot observation.
 
 Scenarios (:func:`sample_episodes`; ``mixed``: each episode is one of the two, 50/50): ``circle`` (agents evenly spaced on a circle of
 ``circle_radius`` around the centre with a random rotation, goals at the antipodes, each
@@ -38,25 +23,10 @@ from dataclasses import dataclass
 import torch
 
 from crowdbench.data.scenes import Scene, load_scene
-from crowdbench.envs.core import (
-    _FAR,
-    RUNNING,
-    START_CLEARANCE,
-    TIMEOUT,
-    SimConfig,
-    StepInfo,
-    clip_speed,
-    free_start,
-    heading_to,
-    outcome_of,
-    segment_min_distance,
-    step_reward,
-    to_local,
-    to_world,
-)
+from crowdbench.envs.core import START_CLEARANCE, SimConfig, free_start
+from crowdbench.envs.world import DONE_AGENTS
 
 SCENARIOS = ("circle", "square", "mixed")
-DONE_AGENTS = ("vanish", "obstacle")
 
 
 @dataclass
@@ -144,207 +114,60 @@ def _square(n: int, cfg: SelfPlayConfig, gen: torch.Generator, tries: int = 500)
                      "raise env.square_width or lower env.min_spacing")
 
 
-class SelfPlaySim:
-    """``B`` self-play environments with ``A = cfg.n_agents`` agents and an optional background scene."""
+class SelfPlayScenario:
+    """Self-play episodes: ``cfg.scenario`` placements around the background scene's centre (or the origin)."""
 
-    def __init__(self, batch_size: int, cfg: SelfPlayConfig | None = None, scene: Scene | None = None):
-        self.cfg = cfg = cfg or SelfPlayConfig()
-        if scene is None and cfg.background:
-            scene = load_scene(cfg.background, cfg.dt, cfg.time_base)
-        self.scene = scene
-        if scene is not None:
-            if abs(cfg.dt - scene.dt) > 1e-9:
-                raise ValueError(f"scene resampled at dt={scene.dt}, simulator dt={cfg.dt}")
-            if scene.n_steps <= cfg.time_limit + 1:
-                raise ValueError(f"scene {scene.name} is shorter than the time limit ({cfg.time_limit} steps)")
-        B, A = batch_size, cfg.n_agents
-        self.B, self.A = B, A
-        self.Mb = scene.max_humans if scene is not None else 0  # background humans
-        self.M = A + self.Mb  # observed "human" slots per agent
+    name = "selfplay"
+
+    def __init__(self, cfg: SelfPlayConfig, scene: Scene | None = None):
+        self.cfg, self.scene, self.A = cfg, scene, cfg.n_agents
         self.centre = scene.centre.clone() if scene is not None else torch.zeros(2)
-        self.t = torch.zeros(B, dtype=torch.long)
-        self.steps = torch.zeros(B, dtype=torch.long)
-        self.pos = torch.zeros(B, A, 2)
-        self.vel = torch.zeros(B, A, 2)
-        self.goal = torch.zeros(B, A, 2)
-        self.start = torch.zeros(B, A, 2)
-        self.heading = torch.zeros(B, A, 2)
-        self.heading[..., 0] = 1.0
-        self.outcome = torch.full((B, A), TIMEOUT, dtype=torch.long)  # not started = finished
-        self.eye = torch.eye(A, dtype=torch.bool)
-        self.r_aa = 2 * cfg.robot_radius
+        self.last_start = scene.last_start(cfg.time_limit) if scene is not None else 0
         self.r_ah = cfg.robot_radius + cfg.human_radius
 
-    # ------------------------------------------------------------------ episodes
-    @property
-    def last_start(self) -> int:
-        return self.scene.last_start(self.cfg.time_limit) if self.scene is not None else 0
-
-    def draw(self, n: int, gen: torch.Generator, tries: int = 50):
-        """``n`` random episodes: start, goal ``[n, A, 2]`` (world frame) and background start index ``[n]``."""
+    def draw(self, n: int, gen: torch.Generator, tries: int = 50) -> dict[str, torch.Tensor]:
+        """``n`` random episodes: ``start``, ``goal`` ``[n, A, 2]`` (world frame) and background start index ``t0``."""
         start, goal = sample_episodes(n, self.cfg, gen)
         start, goal = start + self.centre, goal + self.centre
         t0 = torch.zeros(n, dtype=torch.long)
-        if self.scene is None or n == 0:
-            return start, goal, t0
-        todo = torch.ones(n, dtype=torch.bool)
-        for _ in range(tries):  # a start time where no agent starts on top of a pedestrian
-            idx = todo.nonzero().squeeze(-1)
-            if len(idx) == 0:
-                break
-            t = torch.randint(0, self.last_start + 1, (len(idx),), generator=gen)
-            free = free_start(self.scene, t.repeat_interleave(self.A), start[idx].reshape(-1, 2), START_CLEARANCE,
-                              self.r_ah).view(len(idx), self.A).all(-1)
-            t0[idx] = t
-            todo[idx[free]] = False
-        return start, goal, t0  # after `tries` a few crowded starts may remain (a collision at step 1)
+        if self.scene is not None and n > 0:
+            todo = torch.ones(n, dtype=torch.bool)
+            for _ in range(tries):  # a start time where no agent starts on top of a pedestrian
+                idx = todo.nonzero().squeeze(-1)
+                if len(idx) == 0:
+                    break
+                t = torch.randint(0, self.last_start + 1, (len(idx),), generator=gen)
+                free = free_start(self.scene, t.repeat_interleave(self.A), start[idx].reshape(-1, 2), START_CLEARANCE,
+                                  self.r_ah).view(len(idx), self.A).all(-1)
+                t0[idx] = t
+                todo[idx[free]] = False
+            # after `tries` a few crowded starts may remain (a collision at step 1)
+        return {"start": start, "goal": goal, "t0": t0}
 
-    def reset(self, mask: torch.Tensor, start: torch.Tensor, goal: torch.Tensor, t0: torch.Tensor | None = None):
-        """Reset the environments where ``mask`` ([B] bool) is set; ``start``/``goal`` ``[B, A, 2]`` world frame."""
-        t0 = torch.zeros(self.B, dtype=torch.long) if t0 is None else t0
-        if self.scene is not None and ((t0[mask] < 0).any() or (t0[mask] > self.last_start).any()):
-            raise ValueError(f"start index outside [0, {self.last_start}] for scene {self.scene.name}")
-        m2 = mask.view(-1, 1, 1)
-        self.t = torch.where(mask, t0, self.t)
-        self.steps = torch.where(mask, 0, self.steps)
-        self.start = torch.where(m2, start, self.start)
-        self.pos = torch.where(m2, start, self.pos)
-        self.goal = torch.where(m2, goal, self.goal)
-        self.vel = torch.where(m2, 0.0, self.vel)
-        self.outcome = torch.where(mask.view(-1, 1), RUNNING, self.outcome)
-        self._update_heading()
+    def with_options(self, episode: dict, options: dict) -> dict[str, torch.Tensor]:
+        """One drawn episode with PettingZoo ``reset`` options ``start``/``goal`` (``[A, 2]``, world frame)
+        and ``t0`` (background start index) applied."""
+        episode = dict(episode)
+        for key in ("start", "goal"):
+            if key in options:
+                episode[key] = torch.as_tensor(options[key], dtype=torch.float32).view(1, self.A, 2)
+        if "t0" in options:
+            episode["t0"] = torch.tensor([int(options["t0"])], dtype=torch.long)
+        return episode
 
-    def _update_heading(self) -> None:
-        self.heading = heading_to(self.goal, self.pos, self.heading)
-
-    # ------------------------------------------------------------------ bodies
-    def present(self) -> torch.Tensor:
-        """``[B, A]``: agents that are bodies in the scene (running, or done and kept as obstacles)."""
-        if self.cfg.done_agents == "obstacle":
-            return torch.ones_like(self.outcome, dtype=torch.bool)
-        return self.outcome == RUNNING
-
-    def _pair_mask(self, present: torch.Tensor) -> torch.Tensor:
-        """``[B, A, A]``: agent ``j`` is a body agent ``i`` can meet (not itself)."""
-        return present.unsqueeze(1) & ~self.eye
-
-    def humans(self, t: torch.Tensor | None = None):
-        t = self.t if t is None else t
-        if self.scene is None:
-            z = torch.zeros(self.B, 0, 2)
-            return z, z, torch.zeros(self.B, 0, dtype=torch.bool)
-        return self.scene.pos[t], self.scene.vel[t], self.scene.valid[t]
-
-    def agent_clearance(self, pos: torch.Tensor | None = None) -> torch.Tensor:
-        """``[B, A, A]`` surface gaps between agents (``_FAR`` for itself and absent agents)."""
-        pos = self.pos if pos is None else pos
-        gap = (pos.unsqueeze(1) - pos.unsqueeze(2)).norm(dim=-1) - self.r_aa
-        return gap.masked_fill(~self._pair_mask(self.present()), _FAR)
-
-    def min_clearance(self) -> torch.Tensor:
-        """Current clearance to the nearest body (agent or human), ``[B, A]``."""
-        hpos, _, hvalid = self.humans()
-        gap = ((hpos.unsqueeze(1) - self.pos.unsqueeze(2)).norm(dim=-1) - self.r_ah).masked_fill(
-            ~hvalid.unsqueeze(1), _FAR)
-        return torch.cat((self.agent_clearance(), gap), -1).amin(-1)
-
-    def clip_action(self, action: torch.Tensor) -> torch.Tensor:
-        return clip_speed(action, self.cfg.v_max)
-
-    # ------------------------------------------------------------------ step
-    def step(self, action: torch.Tensor, frame: str | None = None) -> StepInfo:
-        """Advance every running agent by one step; ``action`` ``[B, A, 2]`` in the observation frame.
-
-        ``extra``: ``pair_collision`` ``[B, A, A]`` (agent pairs that collided during the step),
-        ``agent_clearance`` ``[B, A]`` (end-of-step gap to the nearest other agent, for the
-        agent-agent danger metric) and ``human_clearance`` ``[B, A]``.
-        """
-        if torch.isnan(action).any():
-            raise ValueError("action contains NaN")
-        cfg = self.cfg
-        frame = frame or cfg.frame
-        act = to_world(action.unsqueeze(-2), self.heading).squeeze(-2) if frame == "rotate" else action
-        active = self.outcome == RUNNING  # [B, A]
-        vel = self.clip_action(act) * active.unsqueeze(-1)
-        new_pos = self.pos + vel * cfg.dt
-        env_active = active.any(-1)
-
-        # agents: both bodies move linearly over the step (a done obstacle does not move)
-        pair = self._pair_mask(self.present()) & active.unsqueeze(-1)  # [B, i, j]: i can hit j
-        rel0 = self.pos.unsqueeze(1) - self.pos.unsqueeze(2)  # [B, i, j, 2] = p_j - p_i
-        rel1 = new_pos.unsqueeze(1) - new_pos.unsqueeze(2)
-        swept_aa = (segment_min_distance(rel0, rel1) - self.r_aa).masked_fill(~pair, _FAR)
-        end_aa = (rel1.norm(dim=-1) - self.r_aa).masked_fill(~pair, _FAR)
-        pair_hit = swept_aa < 0
-        pair_hit = pair_hit | pair_hit.transpose(1, 2) & active.unsqueeze(-1)  # both agents of a running pair
-
-        # background humans present at t1, moving from their previous position (as in core)
-        if self.scene is not None:
-            t1 = torch.where(env_active, self.t + 1, self.t)
-            h1, hv1, h0 = self.scene.pos[t1], self.scene.valid[t1], self.scene.prev[t1]
-            swept_h = (segment_min_distance(h0.unsqueeze(1) - self.pos.unsqueeze(2), h1.unsqueeze(1) - new_pos.unsqueeze(2))
-                       - self.r_ah).masked_fill(~hv1.unsqueeze(1), _FAR).amin(-1)
-            end_h = ((h1.unsqueeze(1) - new_pos.unsqueeze(2)).norm(dim=-1) - self.r_ah).masked_fill(
-                ~hv1.unsqueeze(1), _FAR).amin(-1)
-        else:
-            t1 = self.t
-            swept_h = end_h = torch.full((self.B, self.A), _FAR)
-        agent_end = end_aa.amin(-1) if self.A > 1 else torch.full((self.B, self.A), _FAR)
-        swept_a = swept_aa.amin(-1) if self.A > 1 else agent_end
-        end = torch.minimum(agent_end, end_h)
-        swept = torch.minimum(swept_a, swept_h)
-
-        steps = self.steps + env_active.long()
-        collision = active & (pair_hit.any(-1) | (swept_h < 0))
-        success = active & ~collision & ((self.goal - new_pos).norm(dim=-1) < cfg.robot_radius)
-        timeout = active & ~collision & ~success & (steps >= cfg.time_limit).unsqueeze(-1)
-
-        reward = step_reward(cfg, end, success, collision | timeout, active)
-        outcome = outcome_of(success, collision, timeout)
-        self.outcome = torch.where(active, outcome, self.outcome)
-        self.pos, self.vel, self.t, self.steps = new_pos, vel, t1, steps
-        self._update_heading()
-        return StepInfo(reward=reward, terminated=success | collision, truncated=timeout, outcome=outcome,
-                        clearance=end, swept_clearance=swept, active=active,
-                        extra={"pair_collision": pair_hit, "agent_clearance": agent_end, "human_clearance": end_h})
-
-    # ------------------------------------------------------------------ observation
-    def observe(self, frame: str | None = None) -> dict[str, torch.Tensor]:
-        """Each agent's view in its own frame: ``robot [B, A, 6]``, ``humans [B, A, A+M, 4]``, ``humans_mask``.
-
-        Slots ``0..A-1`` are the agents (agent ``i``'s own slot is always masked), then the
-        background humans. Same layout and frames as :meth:`CrowdSim.observe`.
-        """
-        frame = frame or self.cfg.frame
-        B, A, S = self.B, self.A, self.M
-        hpos, hvel, hvalid = self.humans()
-        opos = torch.cat((self.pos, hpos), 1)  # [B, S, 2] every body
-        ovel = torch.cat((self.vel, hvel), 1)
-        ovalid = torch.cat((self.present(), hvalid), 1)
-        rel = opos.unsqueeze(1) - self.pos.unsqueeze(2)  # [B, A, S, 2]
-        seen = ovalid.unsqueeze(1) & ((rel * rel).sum(-1) <= self.cfg.sensing_range**2)
-        seen[:, :, :A] &= ~self.eye
-        if frame == "world":
-            rel = opos.unsqueeze(1).expand(B, A, S, 2)
-        vel = ovel.unsqueeze(1).expand(B, A, S, 2)
-        own = torch.stack((self.vel, self.goal - self.pos if frame != "world" else self.goal), -2)  # [B, A, 2, 2]
-        if frame == "rotate":
-            rel, vel, own = to_local(rel, self.heading), to_local(vel, self.heading), to_local(own, self.heading)
-        humans = torch.cat((rel, vel), -1) * seen.unsqueeze(-1)
-        pos = self.pos if frame == "world" else torch.zeros_like(self.pos)
-        robot = torch.cat((pos, own.reshape(B, A, 4)), -1)
-        return {"robot": robot, "humans": humans, "humans_mask": seen}
+    def sampler(self, seed: int) -> EpisodeSampler:
+        return EpisodeSampler(self, seed)
 
 
 class EpisodeSampler:
     """Seeded stream of self-play episodes (a ``torch.Generator``), with ``state_dict`` for checkpoints."""
 
-    def __init__(self, sim: SelfPlaySim, seed: int = 0):
-        self.sim = sim
+    def __init__(self, scenario: SelfPlayScenario, seed: int = 0):
+        self.scenario = scenario
         self.gen = torch.Generator().manual_seed(int(seed))
 
-    def __call__(self, n: int):
-        return self.sim.draw(n, self.gen)
+    def __call__(self, n: int) -> dict[str, torch.Tensor]:
+        return self.scenario.draw(n, self.gen)
 
     def state_dict(self) -> dict:
         return {"rng": self.gen.get_state()}
@@ -353,7 +176,16 @@ class EpisodeSampler:
         self.gen.set_state(state["rng"])
 
 
-def episode_set(cfg: SelfPlayConfig, n: int, seed: int, scene: Scene | None = None):
+def background_scene(cfg: SelfPlayConfig) -> Scene | None:
+    if not cfg.background:
+        return None
+    scene = load_scene(cfg.background, cfg.dt, cfg.time_base)
+    if scene.n_steps <= cfg.time_limit + 1:
+        raise ValueError(f"scene {scene.name} is shorter than the time limit ({cfg.time_limit} steps)")
+    return scene
+
+
+def episode_set(cfg: SelfPlayConfig, n: int, seed: int, scene: Scene | None = None) -> dict[str, torch.Tensor]:
     """The fixed evaluation set: ``n`` episodes drawn from ``seed`` (same arguments, same episodes)."""
-    sim = SelfPlaySim(1, cfg, scene)
-    return sim.draw(n, torch.Generator().manual_seed(int(seed)))
+    scene = background_scene(cfg) if scene is None else scene
+    return SelfPlayScenario(cfg, scene).draw(n, torch.Generator().manual_seed(int(seed)))

@@ -1,9 +1,16 @@
-"""TorchRL ``EnvBase`` over the batched core: the fast path used for training and evaluation.
+"""TorchRL ``EnvBase`` over the batched world: the one env of every scenario and crowd model.
 
 All ``B`` environments live in one env with ``batch_size=[B]``; agent keys sit under the
-``agents`` group (``[B, A, ...]``) so multi-agent self-play extends the same layout.
-Partial resets follow TorchRL's ``_reset`` mask; episodes are drawn by the training
-sampler, or taken in order from a fixed episode list (evaluation).
+``agents`` group (``[B, A, ...]``: one robot in the robot protocols, ``A`` agents in self-play),
+with per-agent ``reward``, ``done``, ``terminated``, ``truncated`` ``[B, A, 1]``. A per-agent done
+is *sticky*: it stays set (with zero reward and a frozen agent) until its environment resets,
+which happens when every agent of it is done (root ``done`` ``[B, 1]``; root ``terminated`` if all
+agents terminated). ``info``: ``outcome`` (each agent's status: RUNNING until it finishes, then its
+outcome), ``clearance`` (end-of-step gap to the nearest body), ``goal_dist`` (distance to the goal,
+read by :class:`~crowdbench.envs.transforms.ProgressReward`) and, in self-play,
+``agent_clearance``. Partial resets follow TorchRL's ``_reset`` mask; episodes come from the
+scenario's seeded sampler (training) or, in order, from a fixed list (evaluation). Training-only
+shaping and human dropout are transforms (:mod:`crowdbench.envs.transforms`).
 """
 
 from __future__ import annotations
@@ -13,113 +20,92 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Categorical, Unbounded
 from torchrl.envs import EnvBase
 
-from crowdbench.data.scenes import load_scene
-from crowdbench.envs.core import CrowdSim, SimConfig
+from crowdbench.envs.core import COLLISION, RUNNING, SUCCESS, StepInfo
 from crowdbench.envs.policy import GROUP
-from crowdbench.envs.protocol import TrainSampler
 from crowdbench.envs.specs import torchrl_specs
+from crowdbench.envs.world import World
 
 
 class CrowdEnv(EnvBase):
-    """``B`` robots navigating one replayed scene.
+    """``B`` environments of one :class:`World`; build one with :func:`crowdbench.envs.factory.make_env`.
 
     Args:
-        scene: scene name (``crowdbench.data.SCENES``).
-        batch: number of parallel environments ``B``.
-        cfg: simulator configuration.
-        seed: seed of the training sampler (random start time and angle).
-        episodes: optional ``(t0 [E], angle [E])``: a fixed list replayed in order
-            (episode ``i`` goes to the ``i``-th environment that resets); wraps around.
-        progress_reward: training-only shaping ``c * (d_before - d_after)`` per step, ``d`` the
-            distance to the goal (0 = the paper's reward, Eq. 1-2). It pays ``c`` per metre of
-            progress, so stalling earns nothing (see docs/training.md for why it is needed at
-            CPU budgets); evaluation never uses it.
-        human_dropout: training-only density randomisation ``p``: each episode draws
-            ``u ~ U(0, p)`` and drops each human with probability ``u`` for the whole episode,
-            so that a policy trained on the dense students001 also sees sparse crowds (the
-            evaluation scenes hotel and eth are sparse). 0 (default) = the paper's training.
+        world: the batched world (its batch size is the env's).
+        scenario: places episodes; ``scenario.sampler(seed)`` is the training stream.
+        seed: seed of that stream.
+        episodes: optional fixed list (a dict of ``[E, ...]`` episode tensors, as ``scenario.from_list``
+            gives): episode ``i`` goes to the ``i``-th environment that resets; wraps around.
     """
 
     batch_locked = True
 
-    def __init__(self, scene: str = "students001", batch: int = 1, cfg: SimConfig | None = None,
-                 seed: int = 0, episodes: tuple[torch.Tensor, torch.Tensor] | None = None,
-                 progress_reward: float = 0.0, human_dropout: float = 0.0):
-        cfg = cfg or SimConfig()
-        super().__init__(batch_size=torch.Size([batch]), device="cpu")
-        self.progress_reward = float(progress_reward)
-        if not 0.0 <= human_dropout <= 1.0:
-            raise ValueError(f"human_dropout must be in [0, 1], got {human_dropout}")
-        self.human_dropout = float(human_dropout)
-        self._dropout_rng = torch.Generator().manual_seed(seed + 7919)
-        self.cfg = cfg
-        self.sim = CrowdSim(load_scene(scene, cfg.dt, cfg.time_base), batch, cfg)
-        self.sampler = TrainSampler(self.sim.last_start, seed, self.sim.start_is_free)
+    def __init__(self, world: World, scenario, seed: int = 0, episodes: dict[str, torch.Tensor] | None = None):
+        super().__init__(batch_size=torch.Size([world.B]), device="cpu")
+        self.world, self.scenario = world, scenario
+        self.cfg = world.cfg
+        self.sampler = scenario.sampler(seed)
         self.episodes = episodes
         self._next_episode = 0
+        self._last: TensorDict | None = None
+        self.last_info: StepInfo | None = None  # the world's record of the last step (evaluation reads it)
         self._make_specs()
 
     @property
     def n_agents(self) -> int:
-        return self.sim.A
+        return self.world.A
 
     def _make_specs(self) -> None:
-        info = {"outcome": Categorical(4, (self.batch_size[0], self.sim.A), dtype=torch.long),
-                "clearance": Unbounded((self.batch_size[0], self.sim.A))}
-        for name, spec in torchrl_specs(self.batch_size[0], self.sim.A, self.sim.M, self.cfg.v_max, info).items():
+        B, A = self.batch_size[0], self.world.A
+        info = {"outcome": Categorical(4, (B, A), dtype=torch.long), "clearance": Unbounded((B, A)),
+                "goal_dist": Unbounded((B, A))}
+        if self.world.interact:
+            info["agent_clearance"] = Unbounded((B, A))
+        for name, spec in torchrl_specs(B, A, self.world.M, self.cfg.v_max, info).items():
             setattr(self, name, spec)
 
     # ------------------------------------------------------------------ episodes
-    def _draw(self, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+    def _draw(self, n: int) -> dict[str, torch.Tensor]:
         if self.episodes is None:
             return self.sampler(n)
-        t0, angle = self.episodes
-        idx = (self._next_episode + torch.arange(n)) % len(t0)
+        E = len(self.episodes["start"])
+        idx = (self._next_episode + torch.arange(n)) % E
         self._next_episode += n
-        return t0[idx], angle[idx]
+        return {k: v[idx] for k, v in self.episodes.items()}
 
-    def _observation(self, outcome: torch.Tensor, clearance: torch.Tensor) -> TensorDict:
-        B, A = self.batch_size[0], self.sim.A
-        agents = TensorDict({"observation": self.sim.observe(), "info": {"outcome": outcome, "clearance": clearance}},
-                            batch_size=(B, A))
-        return TensorDict({GROUP: agents}, batch_size=(B,))
+    def _output(self, clearance: torch.Tensor, agent_clearance: torch.Tensor | None) -> TensorDict:
+        B, A, w = self.batch_size[0], self.world.A, self.world
+        status = w.outcome.clone()
+        term = ((status == SUCCESS) | (status == COLLISION)).unsqueeze(-1)
+        done = (status != RUNNING).unsqueeze(-1)
+        info = {"outcome": status, "clearance": clearance, "goal_dist": (w.goal - w.pos).norm(dim=-1)}
+        if w.interact:
+            info["agent_clearance"] = agent_clearance
+        agents = TensorDict({"observation": w.observe(), "info": info, "done": done, "terminated": term,
+                             "truncated": done & ~term}, batch_size=(B, A))
+        env_done, env_term = done.all(1), term.all(1)
+        return TensorDict({GROUP: agents, "done": env_done, "terminated": env_term, "truncated": env_done & ~env_term},
+                          batch_size=(B,))
 
     def _reset(self, tensordict: TensorDictBase | None, **kwargs) -> TensorDictBase:
         B = self.batch_size[0]
         mask = torch.ones(B, dtype=torch.bool)
         if tensordict is not None and "_reset" in tensordict:
             mask = tensordict["_reset"].reshape(B, -1).any(-1)
-        t0 = torch.zeros(B, dtype=torch.long)
-        angle = torch.zeros(B)
-        n = int(mask.sum())
-        t0[mask], angle[mask] = self._draw(n)
-        keep = None
-        if self.human_dropout > 0:  # density randomisation: drop each human with a per-episode u ~ U(0, p)
-            u = torch.rand(B, 1, generator=self._dropout_rng) * self.human_dropout
-            keep = torch.rand(B, self.sim.M, generator=self._dropout_rng) >= u
-        self.sim.reset(mask, t0, angle, keep)
-        A = self.sim.A
-        out = self._observation(self.sim.outcome.clone(), self.sim.min_clearance())
-        false = torch.zeros(B, 1, dtype=torch.bool)
-        out.update({"done": false, "terminated": false.clone(), "truncated": false.clone()})
-        out[GROUP].update({k: torch.zeros(B, A, 1, dtype=torch.bool) for k in ("done", "terminated", "truncated")})
-        return out
+        if not mask.any() and self._last is not None:
+            # an agent-level "_reset" only (some agents done, no environment done): nothing to reset
+            return self._last.clone()
+        self.world.reset(mask, self._draw(int(mask.sum())))
+        agent_clear = self.world.agent_clearance().amin(-1) if self.world.interact else None
+        self._last = self._output(self.world.min_clearance(), agent_clear)
+        return self._last.clone()
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        before = (self.sim.goal - self.sim.pos).norm(dim=-1)
-        info = self.sim.step(tensordict[GROUP, "action"])
-        reward = info.reward
-        if self.progress_reward:
-            # frozen (finished) agents do not move: their progress is exactly zero
-            reward = reward + self.progress_reward * (before - (self.sim.goal - self.sim.pos).norm(dim=-1))
-        out = self._observation(info.outcome, info.clearance)
-        term, trunc = info.terminated.unsqueeze(-1), info.truncated.unsqueeze(-1)
-        out[GROUP].update({"reward": reward.unsqueeze(-1), "terminated": term, "truncated": trunc,
-                           "done": term | trunc})
-        # an environment is done when all its agents are; truncated if not all terminated
-        done, terminated = (term | trunc).all(1), term.all(1)
-        out.update({"terminated": terminated, "truncated": done & ~terminated, "done": done})
+        info = self.world.step(tensordict[GROUP, "action"])
+        self.last_info = info
+        out = self._output(info.clearance, info.extra.get("agent_clearance"))
+        out[GROUP].set("reward", info.reward.unsqueeze(-1))
+        self._last = out.exclude((GROUP, "reward"))
         return out
 
     def _set_seed(self, seed: int | None) -> None:
-        self.sampler = TrainSampler(self.sim.last_start, 0 if seed is None else seed, self.sim.start_is_free)
+        self.sampler = self.scenario.sampler(0 if seed is None else seed)

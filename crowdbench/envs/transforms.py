@@ -1,0 +1,86 @@
+"""Training-only TorchRL transforms of the crowd env: progress shaping and human dropout.
+
+Evaluation never uses them: the evaluation loop runs the bare env, so the paper's reward and
+every human are what is reported.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.envs.transforms import Transform
+
+from crowdbench.envs.policy import GROUP
+
+_DIST = (GROUP, "info", "goal_dist")
+_REWARD = (GROUP, "reward")
+
+
+def _reset_mask(tensordict: TensorDictBase | None, batch: int) -> torch.Tensor:
+    """The environments a reset call starts anew (as :class:`~crowdbench.envs.torchrl_env.CrowdEnv` reads it)."""
+    if tensordict is not None and "_reset" in tensordict.keys():
+        return tensordict["_reset"].reshape(batch, -1).any(-1)
+    return torch.ones(batch, dtype=torch.bool)
+
+
+class ProgressReward(Transform):
+    """Adds ``c * (d_before - d_after)`` per step, ``d`` the distance to the goal (``info/goal_dist``).
+
+    It pays ``c`` per metre of progress, so stalling earns nothing (docs/training.md explains why
+    CPU budgets need it); a finished agent does not move, so its shaping is exactly zero.
+    """
+
+    def __init__(self, coef: float):
+        super().__init__(in_keys=[], out_keys=[])
+        self.coef = float(coef)
+        self._dist: torch.Tensor | None = None
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        self._dist = tensordict_reset.get(_DIST).clone()  # every env's distance now, reset or not
+        return tensordict_reset
+
+    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
+        after = next_tensordict.get(_DIST)
+        reward = next_tensordict.get(_REWARD)
+        next_tensordict.set(_REWARD, reward + (self.coef * (self._dist - after)).unsqueeze(-1))
+        self._dist = after.clone()
+        return next_tensordict
+
+
+class HumanDropout(Transform):
+    """Density randomisation of the observation: each episode draws ``u ~ U(0, p)`` and hides each
+    human slot with probability ``u`` for the whole episode.
+
+    A hidden human is removed from what the policy sees (``humans_mask`` false, its row zero); it is
+    still in the world, so it can still be hit and still counts in the danger term. A policy trained
+    on the dense students001 thereby also sees sparse crowds (the evaluation scenes hotel and eth are
+    sparse). Self-play agent slots are never hidden.
+    """
+
+    def __init__(self, p: float, seed: int, n_slots: int, n_humans: int):
+        super().__init__(in_keys=[], out_keys=[])
+        if not 0.0 <= p <= 1.0:
+            raise ValueError(f"train.human_dropout must be in [0, 1], got {p}")
+        self.p, self.n_slots, self.n_humans = float(p), int(n_slots), int(n_humans)
+        self.gen = torch.Generator().manual_seed(int(seed) + 7919)
+        self.keep: torch.Tensor | None = None  # [B, S]
+
+    def _hide(self, td: TensorDictBase) -> TensorDictBase:
+        obs = td.get((GROUP, "observation"))
+        keep = self.keep.unsqueeze(1)  # [B, 1, S]
+        obs.set("humans_mask", obs.get("humans_mask") & keep)
+        obs.set("humans", obs.get("humans") * keep.unsqueeze(-1))
+        return td
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        B = tensordict_reset.batch_size[0]
+        mask = _reset_mask(tensordict, B)
+        u = torch.rand(B, 1, generator=self.gen) * self.p
+        drawn = torch.rand(B, self.n_humans, generator=self.gen) >= u
+        agents = torch.ones(B, self.n_slots - self.n_humans, dtype=torch.bool)
+        keep = torch.cat((agents, drawn), 1)
+        self.keep = keep if self.keep is None else torch.where(mask.view(-1, 1), keep, self.keep)
+        return self._hide(tensordict_reset)
+
+    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
+        return self._hide(next_tensordict)

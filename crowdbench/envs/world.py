@@ -1,0 +1,231 @@
+"""The batched world: ``B`` environments of ``A`` learning agents (robots) and ``M`` humans.
+
+One world serves every protocol (the VMAS idea): a **crowd model** (:mod:`crowdbench.envs.humans`)
+moves the humans (replayed ETH/UCY tracks, ORCA, social force, or none) and a **scenario**
+(:mod:`crowdbench.envs.scenarios`) places agents, humans and goals. Every tensor is batch-first;
+one :meth:`World.step` advances all environments with tensor ops; resets take a boolean mask.
+
+Geometry (SPEC section 3), the same for every crowd model:
+
+- clearance ``d`` = centre distance - sum of the two radii;
+- collision: ``d < 0`` at any moment of the step, tested on the linear motion of both bodies over
+  the step (closest approach of the relative segment, :func:`segment_min_distance`);
+- danger: ``0 <= d < danger_dist`` at the end of a step; success: distance to goal < robot radius.
+
+The humans' motion over a step is decided from the state at its start (a reactive crowd model
+sees the agents where they are, with the velocity they had), then all bodies move together.
+
+With ``interact=True`` (self-play) agents are bodies for each other too:
+
+- agent-agent clearance ``d = |p_i - p_j| - 2 robot_radius``; a swept ``d < 0`` is a collision of
+  *both* agents (``StepInfo.extra["pair_collision"]`` ``[B, A, A]``); the danger penalty uses the
+  nearest body, agent or human;
+- a done agent no longer moves and gets zero reward while the others go on; ``done_agents="vanish"``:
+  it leaves the scene (others neither sense nor hit it); ``"obstacle"``: it stays as a static body;
+- agent ``i`` observes ``A + M`` slots, the ``A`` agents first (its own slot masked), then the humans,
+  so a shared-weight graph policy sees every other agent as a neighbour node.
+
+Without it (the robot protocols) each robot observes the ``M`` humans only.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from crowdbench.envs.core import (
+    _FAR,
+    RUNNING,
+    TIMEOUT,
+    SimConfig,
+    StepInfo,
+    clip_speed,
+    heading_to,
+    outcome_of,
+    segment_min_distance,
+    step_reward,
+    to_local,
+    to_world,
+)
+
+DONE_AGENTS = ("vanish", "obstacle")
+
+
+class World:
+    """``B`` environments, ``A`` agents each, humans moved by ``crowd`` (a :class:`~crowdbench.envs.humans.Crowd`)."""
+
+    def __init__(self, batch: int, cfg: SimConfig, crowd, n_agents: int = 1, interact: bool = False,
+                 done_agents: str = "vanish"):
+        if done_agents not in DONE_AGENTS:
+            raise ValueError(f"unknown done_agents {done_agents!r}; valid: {', '.join(DONE_AGENTS)}")
+        if n_agents < 1:
+            raise ValueError(f"n_agents must be >= 1, got {n_agents}")
+        self.cfg, self.crowd = cfg, crowd
+        self.B, self.A, self.Mh = batch, n_agents, crowd.M
+        self.interact, self.done_agents = interact, done_agents
+        self.M = (n_agents if interact else 0) + crowd.M  # observed slots per agent
+        B, A = batch, n_agents
+        self.steps = torch.zeros(B, dtype=torch.long)
+        self.pos = torch.zeros(B, A, 2)
+        self.vel = torch.zeros(B, A, 2)
+        self.goal = torch.zeros(B, A, 2)
+        self.start = torch.zeros(B, A, 2)
+        self.heading = torch.zeros(B, A, 2)
+        self.heading[..., 0] = 1.0
+        self.outcome = torch.full((B, A), TIMEOUT, dtype=torch.long)  # not started = finished
+        self.eye = torch.eye(A, dtype=torch.bool)
+        self.r_aa = 2 * cfg.robot_radius
+        self.radius_sum = cfg.robot_radius + cfg.human_radius
+
+    # the replay crowd's scene and time index (the oracle and the recorder read them)
+    @property
+    def scene(self):
+        return getattr(self.crowd, "scene", None)
+
+    @property
+    def t(self) -> torch.Tensor:
+        return self.crowd.t
+
+    # ------------------------------------------------------------------ episodes
+    def reset(self, mask: torch.Tensor, episode: dict[str, torch.Tensor]) -> None:
+        """Start new episodes where ``mask`` ([B] bool) is set; ``episode`` holds ``[n, ...]`` tensors
+        for the ``n`` masked environments in order: ``start``, ``goal`` ``[n, A, 2]`` (world frame)
+        and what the crowd model needs (e.g. ``t0`` for replay, ``human_start``/``human_goal``)."""
+        idx = mask.nonzero().squeeze(-1)
+        if len(idx) != len(episode["start"]):
+            raise ValueError(f"{len(episode['start'])} episodes for {len(idx)} environments")
+        self.crowd.reset(mask, idx, episode)
+        start, goal = episode["start"].to(self.pos.dtype), episode["goal"].to(self.pos.dtype)
+        self.steps[idx] = 0
+        self.start[idx] = start
+        self.pos[idx] = start
+        self.goal[idx] = goal
+        self.vel[idx] = 0.0
+        self.outcome[idx] = RUNNING
+        self._update_heading()
+
+    def _update_heading(self) -> None:
+        self.heading = heading_to(self.goal, self.pos, self.heading)
+
+    # ------------------------------------------------------------------ bodies
+    def present(self) -> torch.Tensor:
+        """``[B, A]``: agents that are bodies in the scene (running, or done and kept as obstacles)."""
+        if self.done_agents == "obstacle":
+            return torch.ones_like(self.outcome, dtype=torch.bool)
+        return self.outcome == RUNNING
+
+    def _pair_mask(self, present: torch.Tensor) -> torch.Tensor:
+        """``[B, A, A]``: agent ``j`` is a body agent ``i`` can meet (not itself)."""
+        return present.unsqueeze(1) & ~self.eye
+
+    def humans(self):
+        """Humans now: position, velocity ``[B, M, 2]``, present ``[B, M]``."""
+        return self.crowd.observe()
+
+    def human_clearance(self, pos: torch.Tensor | None = None) -> torch.Tensor:
+        """Per-human clearance ``[B, A, M]`` of agents at ``pos`` (default: now); ``_FAR`` on padding."""
+        pos = self.pos if pos is None else pos
+        hpos, _, hvalid = self.humans()
+        gap = (hpos.unsqueeze(1) - pos.unsqueeze(2)).norm(dim=-1) - self.radius_sum
+        return gap.masked_fill(~hvalid.unsqueeze(1), _FAR)
+
+    def agent_clearance(self) -> torch.Tensor:
+        """``[B, A, A]`` surface gaps between agents (``_FAR`` for itself and absent agents)."""
+        gap = (self.pos.unsqueeze(1) - self.pos.unsqueeze(2)).norm(dim=-1) - self.r_aa
+        return gap.masked_fill(~self._pair_mask(self.present()), _FAR)
+
+    def min_clearance(self) -> torch.Tensor:
+        """Current clearance to the nearest body (human, or agent when agents interact), ``[B, A]``."""
+        gap = self.human_clearance()
+        if self.interact:
+            gap = torch.cat((self.agent_clearance(), gap), -1)
+        return gap.amin(-1) if gap.shape[-1] else torch.full((self.B, self.A), _FAR)
+
+    def clip_action(self, action: torch.Tensor) -> torch.Tensor:
+        return clip_speed(action, self.cfg.v_max)
+
+    # ------------------------------------------------------------------ step
+    def step(self, action: torch.Tensor, frame: str | None = None) -> StepInfo:
+        """Advance every running agent and the crowd by one step.
+
+        ``action`` is ``[B, A, 2]`` velocity in the observation frame (``frame``, default the
+        config's). Finished agents stay frozen (zero reward) until their environment resets.
+        ``extra``: ``human_clearance`` ``[B, A]``; with ``interact``, also ``pair_collision``
+        ``[B, A, A]`` and ``agent_clearance`` ``[B, A]`` (end-of-step gap to the nearest agent).
+        """
+        if torch.isnan(action).any():
+            raise ValueError("action contains NaN")
+        cfg = self.cfg
+        frame = frame or cfg.frame
+        act = to_world(action.unsqueeze(-2), self.heading).squeeze(-2) if frame == "rotate" else action
+        active = self.outcome == RUNNING  # [B, A]
+        vel = self.clip_action(act) * active.unsqueeze(-1)
+        new_pos = self.pos + vel * cfg.dt
+        env_active = active.any(-1)
+
+        # humans move from h0 to h1 over the step (decided from the state at its start)
+        h0, h1, hv1 = self.crowd.advance(env_active, self)
+        swept_h = (segment_min_distance(h0.unsqueeze(1) - self.pos.unsqueeze(2), h1.unsqueeze(1) - new_pos.unsqueeze(2))
+                   - self.radius_sum).masked_fill(~hv1.unsqueeze(1), _FAR)
+        end_h = ((h1.unsqueeze(1) - new_pos.unsqueeze(2)).norm(dim=-1) - self.radius_sum).masked_fill(
+            ~hv1.unsqueeze(1), _FAR)
+        far = torch.full((self.B, self.A), _FAR)
+        swept_h = swept_h.amin(-1) if self.Mh else far
+        end_h = end_h.amin(-1) if self.Mh else far
+        extra = {"human_clearance": end_h}
+        hit = swept_h < 0
+        end, swept = end_h, swept_h
+        if self.interact:  # agents: both bodies move linearly (a done obstacle does not move)
+            pair = self._pair_mask(self.present()) & active.unsqueeze(-1)  # [B, i, j]: i can hit j
+            rel0 = self.pos.unsqueeze(1) - self.pos.unsqueeze(2)  # [B, i, j, 2] = p_j - p_i
+            rel1 = new_pos.unsqueeze(1) - new_pos.unsqueeze(2)
+            swept_aa = (segment_min_distance(rel0, rel1) - self.r_aa).masked_fill(~pair, _FAR)
+            end_aa = (rel1.norm(dim=-1) - self.r_aa).masked_fill(~pair, _FAR)
+            pair_hit = swept_aa < 0
+            pair_hit = pair_hit | pair_hit.transpose(1, 2) & active.unsqueeze(-1)  # both agents of a running pair
+            agent_end = end_aa.amin(-1) if self.A > 1 else far
+            swept_a = swept_aa.amin(-1) if self.A > 1 else agent_end
+            end, swept = torch.minimum(agent_end, end_h), torch.minimum(swept_a, swept_h)
+            hit = pair_hit.any(-1) | hit
+            extra.update(pair_collision=pair_hit, agent_clearance=agent_end)
+
+        steps = self.steps + env_active.long()
+        collision = active & hit
+        success = active & ~collision & ((self.goal - new_pos).norm(dim=-1) < cfg.robot_radius)
+        timeout = active & ~collision & ~success & (steps >= cfg.time_limit).unsqueeze(-1)
+
+        reward = step_reward(cfg, end, swept, success, collision, timeout, active)
+        outcome = outcome_of(success, collision, timeout)
+        self.outcome = torch.where(active, outcome, self.outcome)
+        self.pos, self.vel, self.steps = new_pos, vel, steps
+        self._update_heading()
+        return StepInfo(reward=reward, terminated=success | collision, truncated=timeout, outcome=outcome,
+                        clearance=end, swept_clearance=swept, active=active, extra=extra)
+
+    # ------------------------------------------------------------------ observation
+    def observe(self, frame: str | None = None) -> dict[str, torch.Tensor]:
+        """Each agent's view in its own frame (SPEC section 3; layout in :mod:`crowdbench.envs.policy`).
+
+        - ``robot`` ``[B, A, 6]``: ``[px, py, vx, vy, gx, gy]`` (position 0 in relative frames);
+        - ``humans`` ``[B, A, S, 4]``: ``[px, py, vx, vy]`` of every slot, zero where unobserved;
+        - ``humans_mask`` ``[B, A, S]``: present and within the sensing range (centre distance).
+        """
+        frame = frame or self.cfg.frame
+        B, A, S = self.B, self.A, self.M
+        opos, ovel, ovalid = self.humans()
+        if self.interact:
+            opos, ovel = torch.cat((self.pos, opos), 1), torch.cat((self.vel, ovel), 1)
+            ovalid = torch.cat((self.present(), ovalid), 1)
+        rel = opos.unsqueeze(1) - self.pos.unsqueeze(2)  # [B, A, S, 2]
+        seen = ovalid.unsqueeze(1) & ((rel * rel).sum(-1) <= self.cfg.sensing_range**2)
+        if self.interact:
+            seen[:, :, :A] &= ~self.eye
+        if frame == "world":
+            rel = opos.unsqueeze(1).expand(B, A, S, 2)
+        vel = ovel.unsqueeze(1).expand(B, A, S, 2)
+        own = torch.stack((self.vel, self.goal - self.pos if frame != "world" else self.goal), -2)  # [B, A, 2, 2]
+        if frame == "rotate":  # elementwise: the same bits whatever the tensor it is applied to
+            rel, vel, own = to_local(rel, self.heading), to_local(vel, self.heading), to_local(own, self.heading)
+        humans = torch.cat((rel, vel), -1) * seen.unsqueeze(-1)
+        pos = self.pos if frame == "world" else torch.zeros_like(self.pos)
+        robot = torch.cat((pos, own.reshape(B, A, 4)), -1)
+        return {"robot": robot, "humans": humans, "humans_mask": seen}
