@@ -48,10 +48,10 @@ import torch
 from crowdbench.envs.humans.lp import linear_program2, linear_program3
 
 
-def _per_agent(x, like: torch.Tensor) -> torch.Tensor:
+def _per_agent(x, valid: torch.Tensor) -> torch.Tensor:
     if isinstance(x, torch.Tensor):
-        return x.to(torch.float64).expand(like.shape)
-    return torch.full(like.shape, float(x), dtype=torch.float64)
+        return x.to(torch.float64).expand(valid.shape)
+    return torch.full(valid.shape, float(x), dtype=torch.float64)
 
 
 def orca_velocities(
@@ -74,53 +74,62 @@ def orca_velocities(
     dtype; invalid agents keep ``vel``.
     """
     n, k = valid.shape
-    f64 = torch.float64
-    px, py = pos[..., 0].to(f64), pos[..., 1].to(f64)
-    vx, vy = vel[..., 0].to(f64), vel[..., 1].to(f64)
-    rad = _per_agent(radius, px)
-    speed = _per_agent(max_speed, px).reshape(-1)
-    m = min(int(max_neighbors), k - 1)
-
-    # --- computeNeighbors: the m nearest valid others strictly within neighbor_dist.
-    if m > 0:
-        relx = px[:, None, :] - px[:, :, None]  # [n, a, b] = p_b - p_a
-        rely = py[:, None, :] - py[:, :, None]
-        d2 = relx * relx + rely * rely
-        eye = torch.eye(k, dtype=torch.bool)
-        ok = valid[:, :, None] & valid[:, None, :] & ~eye & (d2 < float(neighbor_dist) ** 2)
-        key = torch.where(ok, d2, float("inf"))
-        # Stable sort: ties go to the lower index (RVO2: k-d tree order, see docstring).
-        key, order = key.sort(dim=2, stable=True)
-        key, order = key[..., :m], order[..., :m]
-        mask = torch.isfinite(key).reshape(n * k, m)
-        relx = relx.gather(2, order).reshape(n * k, m)
-        rely = rely.gather(2, order).reshape(n * k, m)
-        flat = order.reshape(n, k * m)
-        ovx = vx.gather(1, flat).reshape(n * k, m)
-        ovy = vy.gather(1, flat).reshape(n * k, m)
-        orad = rad.gather(1, flat).reshape(n * k, m)
-        ax, ay = vx.reshape(-1, 1), vy.reshape(-1, 1)
-        dist_sq = relx * relx + rely * rely
-        line_px, line_py, line_dx, line_dy = _orca_lines(
-            relx, rely, ax - ovx, ay - ovy, dist_sq, rad.reshape(-1, 1) + orad, ax, ay,
-            1.0 / float(time_horizon), 1.0 / float(dt),
-        )  # fmt: skip
-        mask = mask & valid.reshape(-1, 1)
-    else:
-        line_px = line_py = line_dx = line_dy = torch.zeros(n * k, 0, dtype=f64)
-        mask = torch.zeros(n * k, 0, dtype=torch.bool)
-
-    # --- computeNewVelocity: linearProgram2, then linearProgram3 where infeasible.
-    optx, opty = pref[..., 0].to(f64).reshape(-1), pref[..., 1].to(f64).reshape(-1)
-    rx, ry, fail = linear_program2(line_px, line_py, line_dx, line_dy, mask, speed, optx, opty, False)
+    lines = orca_lines(
+        pos, vel, valid, radius, time_horizon=time_horizon, dt=dt, neighbor_dist=neighbor_dist,
+        max_neighbors=max_neighbors,
+    )  # fmt: skip
+    m = lines[0].shape[1]
+    speed = _per_agent(max_speed, valid).reshape(-1)
+    optx, opty = pref[..., 0].to(torch.float64).reshape(-1), pref[..., 1].to(torch.float64).reshape(-1)
+    rx, ry, fail = linear_program2(*lines, speed, optx, opty, False)
     lp3 = (fail < m).nonzero().squeeze(1)
     if lp3.numel():
-        sub = (line_px[lp3], line_py[lp3], line_dx[lp3], line_dy[lp3], mask[lp3])
+        sub = [x[lp3] for x in lines]
         nx, ny = linear_program3(*sub, fail[lp3], speed[lp3], rx[lp3], ry[lp3])
         rx = rx.index_put((lp3,), nx)
         ry = ry.index_put((lp3,), ny)
     new = torch.stack([rx, ry], dim=-1).reshape(n, k, 2).to(vel.dtype)
     return torch.where(valid[..., None], new, vel)
+
+
+def orca_lines(pos, vel, valid, radius, *, time_horizon, dt, neighbor_dist, max_neighbors):
+    """Every agent's ORCA half-planes, nearest neighbour first, as five ``[N * K, M]`` tensors
+    ``(point_x, point_y, direction_x, direction_y, exists)`` with ``M = min(max_neighbors,
+    K - 1)``; velocity ``v`` satisfies a line when ``det(direction, point - v) <= 0``."""
+    n, k = valid.shape
+    f64 = torch.float64
+    px, py = pos[..., 0].to(f64), pos[..., 1].to(f64)
+    vx, vy = vel[..., 0].to(f64), vel[..., 1].to(f64)
+    rad = _per_agent(radius, valid)
+    m = max(min(int(max_neighbors), k - 1), 0)
+    if m == 0:
+        empty = torch.zeros(n * k, 0, dtype=f64)
+        return empty, empty, empty, empty, torch.zeros(n * k, 0, dtype=torch.bool)
+
+    # computeNeighbors: the m nearest valid others strictly within neighbor_dist.
+    relx = px[:, None, :] - px[:, :, None]  # [n, a, b] = p_b - p_a
+    rely = py[:, None, :] - py[:, :, None]
+    d2 = relx * relx + rely * rely
+    eye = torch.eye(k, dtype=torch.bool)
+    ok = valid[:, :, None] & valid[:, None, :] & ~eye & (d2 < float(neighbor_dist) ** 2)
+    key = torch.where(ok, d2, float("inf"))
+    # Stable sort: ties go to the lower index (RVO2: k-d tree order, see docstring).
+    key, order = key.sort(dim=2, stable=True)
+    key, order = key[..., :m], order[..., :m]
+    exists = torch.isfinite(key).reshape(n * k, m)
+    relx = relx.gather(2, order).reshape(n * k, m)
+    rely = rely.gather(2, order).reshape(n * k, m)
+    flat = order.reshape(n, k * m)
+    ovx = vx.gather(1, flat).reshape(n * k, m)
+    ovy = vy.gather(1, flat).reshape(n * k, m)
+    orad = rad.gather(1, flat).reshape(n * k, m)
+    ax, ay = vx.reshape(-1, 1), vy.reshape(-1, 1)
+    dist_sq = relx * relx + rely * rely
+    lx, ly, ldx, ldy = _orca_lines(
+        relx, rely, ax - ovx, ay - ovy, dist_sq, rad.reshape(-1, 1) + orad, ax, ay,
+        1.0 / float(time_horizon), 1.0 / float(dt),
+    )  # fmt: skip
+    return lx, ly, ldx, ldy, exists
 
 
 def _orca_lines(relx, rely, rvx, rvy, dist_sq, comb_r, vx, vy, inv_tau: float, inv_dt: float):

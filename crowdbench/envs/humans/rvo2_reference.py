@@ -69,7 +69,7 @@ def random_configs(kind: str, n: int, k: int, seed: int) -> dict[str, torch.Tens
         radius = g.uniform(0.15, 0.3, (n, k))
     counts = g.integers(max(2, k // 2), k + 1, n)
     valid = np.arange(k)[None, :] < counts[:, None]
-    f32 = lambda a: torch.from_numpy(a.astype(np.float32).astype(np.float64))  # noqa: E731
+    f32 = lambda a: torch.from_numpy(a.astype(np.float32).astype(np.float64))
     return {
         "pos": f32(pos), "vel": f32(vel), "pref": f32(pref), "valid": torch.from_numpy(valid),
         "radius": f32(radius), "max_speed": f32(max_speed),
