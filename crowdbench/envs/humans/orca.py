@@ -135,31 +135,34 @@ def orca_lines(pos, vel, valid, radius, *, time_horizon, dt, neighbor_dist, max_
 def _orca_lines(relx, rely, rvx, rvy, dist_sq, comb_r, vx, vy, inv_tau: float, inv_dt: float):
     """ORCA half-planes (point x/y, unit direction x/y), all ``[B, M]``, as in
     ``Agent::computeNewVelocity``. Rows of absent neighbours hold garbage (masked later)."""
-    collide = dist_sq <= comb_r * comb_r
+    # Selections are torch.lerp with 0/1 weights (exact, and several times cheaper than
+    # torch.where on CPU); both branches are finite for every existing neighbour.
+    collide = (dist_sq <= comb_r * comb_r).to(relx.dtype)
     # Overlapping discs use the cut-off circle of the step instead of the horizon: one w for both.
-    inv_t = torch.where(collide, inv_dt, inv_tau)
+    inv_t = inv_tau + (inv_dt - inv_tau) * collide
     wx, wy = rvx - inv_t * relx, rvy - inv_t * rely
     w_sq = wx * wx + wy * wy
     dot1 = wx * relx + wy * rely
     r_sq = comb_r * comb_r
-    circle = collide | ((dot1 < 0.0) & (dot1 * dot1 > r_sq * w_sq))
+    on_cutoff = (dot1 < 0.0) & (dot1 * dot1 > r_sq * w_sq)
+    circle = torch.maximum(collide, on_cutoff.to(relx.dtype))
 
     # Projection on the (cut-off or collision) circle.
     w_len = w_sq.sqrt()
-    ux, uy = wx / w_len, wy / w_len
-    cdx, cdy = uy, -ux
+    # w = 0 (only on a leg, never on a circle) would poison the unused branch with NaN.
+    inv_w = 1.0 / w_len.clamp_min(1e-300)
+    ux, uy = wx * inv_w, wy * inv_w
     c_scale = comb_r * inv_t - w_len
 
-    # Projection on a leg: left leg if w is left of P, else the right one (s = -1 mirrors it).
+    # Projection on a leg: left leg if w is left of P, else the right one (sign -1 mirrors it).
     leg = (dist_sq - r_sq).clamp_min(0.0).sqrt()
-    s = torch.where(relx * wy - rely * wx > 0.0, 1.0, -1.0)
-    sleg = s * leg
+    sleg = leg * ((relx * wy - rely * wx > 0.0).to(relx.dtype) * 2.0 - 1.0)
     ldx = (relx * sleg - rely * comb_r) / dist_sq
     ldy = (rely * sleg + relx * comb_r) / dist_sq
     proj = rvx * ldx + rvy * ldy
 
-    dx = torch.where(circle, cdx, ldx)
-    dy = torch.where(circle, cdy, ldy)
-    ux = torch.where(circle, c_scale * ux, proj * ldx - rvx)
-    uy = torch.where(circle, c_scale * uy, proj * ldy - rvy)
+    dx = torch.lerp(ldx, uy, circle)
+    dy = torch.lerp(ldy, -ux, circle)
+    ux = torch.lerp(proj * ldx - rvx, c_scale * ux, circle)
+    uy = torch.lerp(proj * ldy - rvy, c_scale * uy, circle)
     return vx + 0.5 * ux, vy + 0.5 * uy, dx, dy
