@@ -1,0 +1,140 @@
+"""crowdbench.envs.crowdnav_cases reproduces CrowdNav's test cases exactly."""
+
+import numpy as np
+import pytest
+
+from crowdbench.envs.crowdnav_cases import CROWDNAV, case_list, crowdnav_case
+
+# Reference values: obtained once by running CrowdNav's own code (github.com/vita-epfl/CrowdNav at commit
+# 20d678085c06831e658a65b9e20c8bb6f6ecdc10: CrowdSim.configure/reset of crowd_sim/envs/crowd_sim.py with
+# Human/Robot of crowd_sim/envs/utils/ and crowd_nav/configs/env.config, gym and rvo2 stubbed, numpy 2.4)
+# in a scratch directory outside this repository: env.reset('test', test_case=case) with
+# test_sim = circle_crossing or square_crossing and [sim] human_num = 5 or 20, printing repr() of the
+# first two humans' (px, py) and (gx, gy). Keys: (scenario, n_humans, case) -> (start0, goal0, start1, goal1).
+REFERENCE = {
+    ("circle", 5, 0): (
+        (-2.6625559084662678, -2.837985290326649), (2.6625559084662678, 2.837985290326649),
+        (-3.6025107218593906, 0.15897818498977118), (3.6025107218593906, -0.15897818498977118),
+    ),
+    ("circle", 5, 1): (
+        (-1.6189844599022485, 3.4489804011123173), (1.6189844599022485, -3.4489804011123173),
+        (-4.101755541185293, 1.3870311744563686), (4.101755541185293, -1.3870311744563686),
+    ),
+    ("circle", 5, 7): (
+        (-3.520366552238565, -1.6880531654372484), (3.520366552238565, 1.6880531654372484),
+        (-0.8226408804702925, -4.142700726059962), (0.8226408804702925, 4.142700726059962),
+    ),
+    ("circle", 5, 499): (
+        (1.1864128465707466, -3.4844207477053897), (-1.1864128465707466, 3.4844207477053897),
+        (2.8992680728456968, -3.164794308595407), (-2.8992680728456968, 3.164794308595407),
+    ),
+    ("square", 5, 0): (
+        (-0.5750347156220287, 4.502828643490245), (2.410957007139991, 3.7247453518203533),
+        (0.20354812384544563, -1.028055386542942), (-1.1656609867418999, 3.417407242530616),
+    ),
+    ("square", 5, 3): (
+        (-2.179668944299694, -4.8313000610840175), (2.9834372919610153, 3.9497810105534703),
+        (-0.029776518866930224, 4.021795069659744), (3.7725980893353004, -3.2789622619584566),
+    ),
+    ("circle", 20, 0): (
+        (-2.6625559084662678, -2.837985290326649), (2.6625559084662678, 2.837985290326649),
+        (-3.6025107218593906, 0.15897818498977118), (3.6025107218593906, -0.15897818498977118),
+    ),
+}
+
+MIN_SEP = CROWDNAV.human_radius + CROWDNAV.robot_radius + CROWDNAV.discomfort_dist  # 0.8 m, as CrowdNav sums it
+
+
+@pytest.fixture(scope="module")
+def circle():
+    return case_list("circle", 5)
+
+
+@pytest.fixture(scope="module")
+def square():
+    return case_list("square", 5)
+
+
+@pytest.mark.parametrize("key", sorted(REFERENCE))
+def test_reference_values_exact(key):
+    scenario, n_humans, case = key
+    c = crowdnav_case(case, scenario, n_humans)
+    s0, g0, s1, g1 = REFERENCE[key]
+    assert c["human_start"].shape == (n_humans, 2) and c["human_start"].dtype == np.float64
+    assert tuple(c["human_start"][0]) == s0 and tuple(c["human_goal"][0]) == g0
+    assert tuple(c["human_start"][1]) == s1 and tuple(c["human_goal"][1]) == g1
+    assert tuple(c["robot_start"]) == (0.0, -4.0) and tuple(c["robot_goal"]) == (0.0, 4.0)
+    assert c["seed"] == 1000 + case
+
+
+def test_case_list_matches_single_cases(circle, square):
+    assert circle["human_start"].shape == (500, 5, 2) and circle["robot_goal"].shape == (500, 2)
+    assert np.array_equal(circle["episode"], np.arange(500)) and np.array_equal(circle["seed"], 1000 + np.arange(500))
+    for k in (0, 7, 499):
+        for lst, scen in ((circle, "circle"), (square, "square")):
+            c = crowdnav_case(k, scen)
+            assert np.array_equal(lst["human_start"][k], c["human_start"])
+            assert np.array_equal(lst["human_goal"][k], c["human_goal"])
+    # the counter wraps at test_size: episode 500 of a run is case 0 again
+    assert list(case_list("circle", 5, n=502)["episode"][-2:]) == [0, 1]
+
+
+def test_circle_geometry(circle):
+    s, g = circle["human_start"], circle["human_goal"]
+    assert np.array_equal(g, -s)  # goal is exactly the opposite point, noise included
+    ang, noise = circle["human_angle"], circle["human_noise"]
+    on_circle = CROWDNAV.circle_radius * np.stack([np.cos(ang), np.sin(ang)], -1)
+    assert np.array_equal(on_circle + noise, s)
+    half = CROWDNAV.human_v_pref / 2  # noise = (u - 0.5) * v_pref per axis, u in [0, 1)
+    assert (noise >= -half).all() and (noise < half).all()
+    r = np.linalg.norm(s, axis=-1)
+    assert (np.abs(r - CROWDNAV.circle_radius) <= half * np.sqrt(2) + 1e-12).all()
+    # every start/goal point (humans' and the robot's) is >= 0.8 m from every other agent's start and goal
+    rs, rg = circle["robot_start"][:, None], circle["robot_goal"][:, None]
+    pts = np.concatenate([s, g], 1)  # [n, 10, 2]
+    assert (np.linalg.norm(pts - rs, axis=-1) >= MIN_SEP).all()
+    assert (np.linalg.norm(pts - rg, axis=-1) >= MIN_SEP).all()
+    d = np.linalg.norm(pts[:, :, None] - pts[:, None], axis=-1)
+    own = np.eye(5, dtype=bool)
+    same_agent = np.block([[own, own], [own, own]])
+    assert (d[:, ~same_agent] >= MIN_SEP).all()
+
+
+def test_square_geometry(square):
+    s, g, sign = square["human_start"], square["human_goal"], square["human_sign"]
+    half = CROWDNAV.square_width / 2
+    assert (np.abs(s) <= half).all() and (np.abs(g) <= half).all()
+    assert set(np.unique(sign)) == {-1.0, 1.0}
+    assert (s[..., 0] * sign >= 0).all() and (g[..., 0] * sign <= 0).all()  # opposite sides of the y axis
+    # robot placed as in circle crossing
+    assert (square["robot_start"] == (0.0, -4.0)).all() and (square["robot_goal"] == (0.0, 4.0)).all()
+    # starts are separated from starts, goals from goals (robot included) ...
+    off = ~np.eye(5, dtype=bool)
+    for p, robot in ((s, square["robot_start"]), (g, square["robot_goal"])):
+        assert (np.linalg.norm(p - robot[:, None], axis=-1) >= MIN_SEP).all()
+        assert (np.linalg.norm(p[:, :, None] - p[:, None], axis=-1)[:, off] >= MIN_SEP).all()
+    # ... but a start is not checked against goals: in case 0 human 0 starts 0.76 m from the robot's goal
+    assert np.linalg.norm(s[0, 0] - square["robot_goal"][0]) < MIN_SEP
+
+
+def test_more_humans_extend_fewer():
+    # humans are rejection-sampled one by one against earlier ones only, from a seed without human_num
+    c5, c20 = crowdnav_case(3, "circle", 5), crowdnav_case(3, "circle", 20)
+    assert np.array_equal(c20["human_start"][:5], c5["human_start"])
+    d = np.linalg.norm(c20["human_start"][:, None] - c20["human_start"][None], axis=-1)
+    assert (d[~np.eye(20, dtype=bool)] >= MIN_SEP).all()
+
+
+def test_phases_and_special_cases():
+    assert crowdnav_case(4, phase="val")["seed"] == 4 and crowdnav_case(4, phase="train")["seed"] == 2004
+    # no bound check in CrowdNav: test case 1000 is training episode 0
+    assert np.array_equal(crowdnav_case(1000)["human_start"], crowdnav_case(0, phase="train")["human_start"])
+    dbg = crowdnav_case(-1)
+    assert dbg["human_start"].tolist() == [[0, -6], [-5, -5], [5, -5]] and dbg["seed"] is None
+    with pytest.raises(ValueError):
+        crowdnav_case(-2)
+    with pytest.raises(ValueError):
+        crowdnav_case(0, "mixed")
+    r = crowdnav_case(0, randomize_attributes=True)
+    assert ((r["human_radius"] >= 0.3) & (r["human_radius"] < 0.5)).all()
+    assert ((r["human_v_pref"] >= 0.5) & (r["human_v_pref"] < 1.5)).all()
