@@ -17,8 +17,8 @@ from crowdbench.data.scenes import check_scene
 from crowdbench.envs.core import OUTCOMES, RUNNING, SUCCESS, SimConfig
 from crowdbench.envs.factory import replay_world
 from crowdbench.envs.policy import ACTION, OBS, Policy
-from crowdbench.envs.torchrl_env import CrowdEnv
 from crowdbench.envs.protocol import PAPER_SCENES, PROTOCOL_VERSION, ProtocolSpec, load_episodes
+from crowdbench.envs.torchrl_env import CrowdEnv
 from crowdbench.numerics import describe
 
 Z95 = 1.959963984540054

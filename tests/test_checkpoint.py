@@ -16,7 +16,7 @@ from crowdbench.algos.checkpoint import (
     policy_from_checkpoint,
     save_checkpoint,
 )
-from crowdbench.envs.torchrl_env import CrowdEnv
+from crowdbench.envs.factory import replay_env
 
 ROOT = Path(__file__).resolve().parents[1]
 SHIPPED = ROOT / "leaderboard" / "submissions" / "mlp_td3_s0" / "checkpoint.pt"  # format 1, no algo.per_weights
@@ -41,7 +41,7 @@ def test_a_shipped_format_1_checkpoint_loads_with_the_upgraded_config():
     ref.load_state_dict(raw["actor"])
     ref.eval()
     policy = policy_from_checkpoint(SHIPPED)
-    td = CrowdEnv("students003", batch=8, seed=0).reset()
+    td = replay_env("students003", batch=8, seed=0).reset()
     with torch.no_grad():
         assert torch.equal(policy.act(td), ref(td.clone(False))["agents", "action"])
 

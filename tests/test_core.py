@@ -4,6 +4,7 @@ import math
 
 import pytest
 import torch
+from worlds import replay_sim, reset_v1
 
 from crowdbench.data.scenes import Scene, load_scene
 from crowdbench.envs.core import (
@@ -14,7 +15,6 @@ from crowdbench.envs.core import (
     SimConfig,
     segment_min_distance,
 )
-from worlds import replay_sim, reset_v1
 
 
 def toy_scene(tracks, n_steps=12, dt=1.0):

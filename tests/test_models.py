@@ -11,6 +11,7 @@ import torch
 import torch.nn.functional as F
 import yaml
 from tensordict import TensorDict
+from worlds import replay_sim, reset_v1
 
 from crowdbench.data.scenes import load_scene
 from crowdbench.envs.policy import ACTION, OBS
@@ -24,7 +25,6 @@ from crowdbench.models.heads import (
     critic_module,
     prepare_batch,
 )
-from worlds import replay_sim, reset_v1
 
 CONFIGS = Path(__file__).resolve().parents[1] / "crowdbench" / "conf" / "encoder"
 SMALL = {"gatedgcn": {"dim": 16}, "gcn": {"dim": 16}, "mlp": {"dim": 16, "hidden": [32]}}
@@ -37,7 +37,7 @@ def real_obs():
     torch.manual_seed(0)
     b = 12
     sim = replay_sim(load_scene("students001"), b)
-    t0 = torch.linspace(0, sim.last_start, b).long()
+    t0 = torch.linspace(0, sim.scenario.last_start, b).long()
     ang = torch.linspace(0, 2 * math.pi, b + 1)[:-1]
     reset_v1(sim, torch.ones(b, dtype=torch.bool), t0, ang)
     for _ in range(6):

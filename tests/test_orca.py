@@ -7,13 +7,13 @@ import math
 import numpy as np
 import pytest
 import torch
+from worlds import replay_sim, reset_v1
 
 from crowdbench.baselines.orca import ORCA
 from crowdbench.baselines.straight import StraightToGoal
 from crowdbench.data import load_scene
 from crowdbench.envs.core import COLLISION, RUNNING, SUCCESS
 from crowdbench.envs.policy import obs_tensordict
-from worlds import replay_sim, reset_v1
 
 DT, V_MAX, RADII = 0.25, 1.0, 0.2 + 0.1
 
@@ -213,7 +213,7 @@ def run_episodes(policy, sim, t0, angle, steps=100):
 def test_end_to_end_students003_fewer_collisions_than_straight():
     batch = 16
     sim = replay_sim(load_scene("students003"), batch)
-    t0 = torch.linspace(0, sim.last_start, batch + 2).long()[1:-1]  # fixed, spread over the recording
+    t0 = torch.linspace(0, sim.scenario.last_start, batch + 2).long()[1:-1]  # fixed, spread over the recording
     angle = torch.arange(batch) * 2.399963  # golden-angle sequence around the circle
     orca_out, orca_clear = run_episodes(ORCA(), sim, t0, angle)
     straight_out, _ = run_episodes(StraightToGoal(), sim, t0, angle)

@@ -8,23 +8,24 @@ import numpy as np
 import pytest
 import torch
 from pettingzoo.test import parallel_api_test, parallel_seed_test
+from worlds import replay_sim, reset_v1
 
 from crowdbench.data.scenes import load_scene
-from crowdbench.envs.core import CrowdSim, SimConfig
-from crowdbench.envs.pettingzoo_env import CrowdParallelEnv
+from crowdbench.envs.core import SimConfig
+from crowdbench.envs.factory import replay_parallel_env
 
 AGENT = "robot_0"
 
 
 def test_parallel_api():
-    env = CrowdParallelEnv()
+    env = replay_parallel_env()
     parallel_api_test(env, num_cycles=300)  # > time_limit: episodes run to their end
 
 
 def test_parallel_seed():
     # note: parallel_seed_test only compares the first step (its `any(terminations)` is over
     # the dict's keys), hence the longer determinism check below
-    parallel_seed_test(lambda: CrowdParallelEnv("students001"), num_cycles=50)
+    parallel_seed_test(lambda: replay_parallel_env("students001"), num_cycles=50)
 
 
 def rollout(env, seed, n=40):
@@ -54,10 +55,10 @@ def assert_same(x, y):
 
 
 def test_reset_seed_reproducible():
-    env = CrowdParallelEnv()
+    env = replay_parallel_env()
     a = rollout(env, 7)
     b = rollout(env, 7)  # same env object, re-seeded
-    c = rollout(CrowdParallelEnv(), 7)
+    c = rollout(replay_parallel_env(), 7)
     assert_same(a, b)
     assert_same(a, c)
     env.reset(seed=7)
@@ -69,12 +70,12 @@ def test_reset_seed_reproducible():
 
 
 def test_spaces_and_observation_layout():
-    env = CrowdParallelEnv()
-    assert env.metadata["name"] == "crowdbench_v0"
+    env = replay_parallel_env()
+    assert env.metadata["name"] == "crowdbench_v1"
     assert env.possible_agents == [AGENT]
     assert env.observation_space(AGENT) is env.observation_space(AGENT)
     assert env.action_space(AGENT) is env.action_space(AGENT)
-    m = env.sim.M
+    m = env.world.M
     obs, infos = env.reset(seed=0)
     assert env.agents == [AGENT]
     o = obs[AGENT]
@@ -93,13 +94,13 @@ def test_spaces_and_observation_layout():
 
 
 def test_reset_options_pick_episode():
-    env = CrowdParallelEnv()
+    env = replay_parallel_env()
     _, infos = env.reset(options={"t0": 123, "angle": 0.5})
     assert env.episode == {"t0": 123, "angle": 0.5}
     assert infos[AGENT]["t0"] == 123 and infos[AGENT]["angle"] == 0.5
-    assert env.sim.t.item() == 123
-    start = env.sim.start[0, 0]
-    c = env.scene.centre
+    assert env.world.t.item() == 123
+    start = env.world.start[0, 0]
+    c = env.world.scene.centre
     expected = c + 4.0 * torch.tensor([math.cos(0.5), math.sin(0.5)])
     assert torch.allclose(start, expected, atol=1e-5)
     with pytest.raises(ValueError, match="start index"):
@@ -108,13 +109,13 @@ def test_reset_options_pick_episode():
 
 @pytest.mark.parametrize("frame", ["rotate", "world"])
 def test_same_core_as_direct_sim(frame):
-    """The PettingZoo view and a direct B=1 CrowdSim give identical observations and rewards."""
+    """The PettingZoo view and a direct B=1 world give identical observations and rewards."""
     cfg = SimConfig(frame=frame)
-    env = CrowdParallelEnv("students001", cfg=cfg)
-    sim = CrowdSim(load_scene("students001", cfg.dt, cfg.time_base), 1, cfg)
+    env = replay_parallel_env("students001", cfg=cfg)
+    sim = replay_sim(load_scene("students001", cfg.dt, cfg.time_base), 1, cfg)
     t0, angle = 200, 2.0
     obs, _ = env.reset(options={"t0": t0, "angle": angle})
-    sim.reset(torch.ones(1, dtype=torch.bool), torch.tensor([t0]), torch.tensor([angle]))
+    reset_v1(sim, torch.ones(1, dtype=torch.bool), torch.tensor([t0]), torch.tensor([angle]))
 
     def check(o_env, o_sim):
         for k in ("robot", "humans", "humans_mask"):
@@ -134,11 +135,11 @@ def test_same_core_as_direct_sim(frame):
         assert trunc[AGENT] == ref.truncated[0, 0].item()
         assert info[AGENT]["clearance"] == ref.clearance[0, 0].item()
         n += 1
-    assert n == env.sim.steps.item() and n <= cfg.time_limit
+    assert n == env.world.steps.item() and n <= cfg.time_limit
 
 
 def test_agent_removed_after_termination():
-    env = CrowdParallelEnv()
+    env = replay_parallel_env()
     obs, _ = env.reset(seed=3, options={"angle": 1.0})
     done = False
     for _ in range(env.cfg.time_limit):
@@ -161,7 +162,7 @@ def test_agent_removed_after_termination():
 
 
 def test_timeout_truncates():
-    env = CrowdParallelEnv(cfg=SimConfig(time_limit=5))
+    env = replay_parallel_env(cfg=SimConfig(time_limit=5))
     env.reset(seed=0)  # a standing robot meets nobody within 5 steps in this episode
     for _ in range(4):
         _, rew, term, trunc, info = env.step({AGENT: np.zeros(2, np.float32)})
@@ -173,7 +174,7 @@ def test_timeout_truncates():
 
 
 def test_nan_action_raises():
-    env = CrowdParallelEnv()
+    env = replay_parallel_env()
     env.reset(seed=0)
     with pytest.raises(ValueError, match="robot_0.*NaN"):
         env.step({AGENT: np.array([np.nan, 0.0], np.float32)})
@@ -181,7 +182,7 @@ def test_nan_action_raises():
 
 
 def test_bad_actions_raise():
-    env = CrowdParallelEnv()
+    env = replay_parallel_env()
     env.reset(seed=0)
     with pytest.raises(ValueError, match="missing action"):
         env.step({})
@@ -193,9 +194,9 @@ def test_bad_actions_raise():
 
 def test_unknown_scene_names_valid_scenes():
     with pytest.raises(ValueError, match="unknown scene 'atlantis'.*students001.*zara2"):
-        CrowdParallelEnv("atlantis")
+        replay_parallel_env("atlantis")
 
 
 def test_render_mode_none_only():
     with pytest.raises(ValueError, match="render_mode"):
-        CrowdParallelEnv(render_mode="human")
+        replay_parallel_env(render_mode="human")

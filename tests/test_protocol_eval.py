@@ -5,6 +5,7 @@ import math
 
 import pytest
 import torch
+from worlds import replay_sim
 
 from crowdbench.baselines.straight import StraightToGoal
 from crowdbench.data.scenes import load_scene
@@ -17,7 +18,6 @@ from crowdbench.envs.protocol import (
     protocol_path,
 )
 from crowdbench.eval import evaluate, mean_ci, rate_ci
-from worlds import replay_sim, reset_v1
 
 SPEC_KEYS = ["protocol", "scene", "episode", "start_time_s", "dt", "start", "goal", "robot_xy", "outcome",
              "nav_time_s", "danger_steps", "min_clearance"]
@@ -139,7 +139,7 @@ def test_train_sampler_avoids_occupied_starts():
         gaps = [(scene.pos[t][scene.valid[t]].double() - s).norm(dim=-1) - 0.3 for t, s in zip(t0.tolist(), start)]
         return torch.tensor([bool((g < 0.3 - 1e-4).any()) for g in gaps])
 
-    raw = TrainSampler(sim.last_start, seed=1)(1000)
+    raw = TrainSampler(sim.scenario.last_start, seed=1)(1000)
     assert occupied(*raw).sum() >= 30  # the dense training scene really has occupied starts
-    t0, angle = TrainSampler(sim.last_start, seed=1, is_free=sim.start_is_free)(1000)
+    t0, angle = TrainSampler(sim.scenario.last_start, seed=1, is_free=sim.scenario.start_is_free)(1000)
     assert not occupied(t0, angle).any()

@@ -11,6 +11,7 @@ from pettingzoo.test import parallel_api_test, parallel_seed_test
 from tensordict.nn import TensorDictModule
 from torchrl.envs import RewardSum, TransformedEnv
 from torchrl.envs.utils import check_env_specs
+from worlds import reset_sp, selfplay_sim
 
 from crowdbench.algos.builders import build_actor
 from crowdbench.algos.checkpoint import load_checkpoint, policy_from_checkpoint
@@ -18,10 +19,9 @@ from crowdbench.algos.multiagent import agent_transitions, finished_episodes
 from crowdbench.baselines.straight import StraightToGoal
 from crowdbench.cli import compose, main
 from crowdbench.envs.core import COLLISION, RUNNING, SUCCESS
-from crowdbench.envs.factory import make_env
+from crowdbench.envs.factory import make_env, selfplay_env, selfplay_parallel_env
 from crowdbench.envs.policy import GROUP, obs_tensordict
-from crowdbench.envs.selfplay import SelfPlayConfig, SelfPlaySim, episode_set, sample_episodes
-from crowdbench.envs.selfplay_env import SelfPlayEnv, SelfPlayParallelEnv
+from crowdbench.envs.selfplay import SelfPlayConfig, episode_set, sample_episodes
 from crowdbench.eval_selfplay import evaluate_selfplay
 
 ALL = torch.ones(1, dtype=torch.bool)
@@ -43,9 +43,9 @@ def test_symmetric_circle_straight_collides_every_neighbour_pair(n):
     no other pair (second neighbours are sqrt(2) or more times farther apart).
     """
     cfg = SelfPlayConfig(n_agents=n, jitter=0.0)
-    sim = SelfPlaySim(3, cfg)
+    sim = selfplay_sim(3, cfg)
     start, goal = sample_episodes(3, cfg, torch.Generator().manual_seed(n))
-    sim.reset(torch.ones(3, dtype=torch.bool), start, goal)
+    reset_sp(sim, torch.ones(3, dtype=torch.bool), start, goal)
     t_star = cfg.circle_radius - 2 * cfg.robot_radius / (2 * math.sin(math.pi / n))
     k = math.ceil(t_star / cfg.dt)
     for _ in range(k - 1):
@@ -63,10 +63,10 @@ def test_symmetric_circle_straight_collides_every_neighbour_pair(n):
 def test_swept_test_catches_a_collision_between_step_ends():
     """Two agents pass each other 0.35 m apart (< 0.4) mid-step; both step ends are 0.43 m apart."""
     cfg = SelfPlayConfig(n_agents=2)
-    sim = SelfPlaySim(1, cfg)
+    sim = selfplay_sim(1, cfg)
     start = torch.tensor([[[-0.125, 0.0], [0.125, 0.35]]])
     goal = torch.tensor([[[5.0, 0.0], [-5.0, 0.35]]])
-    sim.reset(ALL, start, goal)
+    reset_sp(sim, ALL, start, goal)
     info = sim.step(torch.tensor([[[1.0, 0.0], [1.0, 0.0]]]))  # rotate frame: both head for their goals
     assert info.clearance.min() > 0  # at the end of the step they are apart again
     assert info.extra["pair_collision"][0, 0, 1] and info.extra["pair_collision"][0, 1, 0]
@@ -76,10 +76,10 @@ def test_swept_test_catches_a_collision_between_step_ends():
 @pytest.mark.parametrize("done_agents", ["vanish", "obstacle"])
 def test_done_agents_stop_and_get_no_reward_while_others_continue(done_agents):
     cfg = SelfPlayConfig(n_agents=5, done_agents=done_agents)
-    sim = SelfPlaySim(1, cfg)
+    sim = selfplay_sim(1, cfg)
     start = torch.tensor([[[0.0, -3.0], [0.0, 0.0], [0.0, 0.5], [-2.0, 3.0], [-0.7, 3.0]]])
     goal = torch.tensor([[[0.4, -3.0], [4.0, 0.0], [4.0, 0.5], [2.0, 3.0], [-6.0, 3.0]]])
-    sim.reset(ALL, start, goal)
+    reset_sp(sim, ALL, start, goal)
     # agent 0 arrives in one step (0.4 m, tolerance 0.2); 3 and 4 meet head-on (1.3 m apart: overlap in step 2);
     # 1 and 2 walk side by side 0.5 m apart: gap 0.1 m, a danger penalty of -0.1 + 0.1/2 every step
     info = straight_step(sim)
@@ -103,8 +103,8 @@ def test_done_agents_stop_and_get_no_reward_while_others_continue(done_agents):
 
 def test_torchrl_env_specs_and_sticky_per_agent_done():
     for n in (2, 6):
-        check_env_specs(SelfPlayEnv(3, SelfPlayConfig(n_agents=n, scenario="square"), seed=0))
-    env = TransformedEnv(SelfPlayEnv(6, SelfPlayConfig(n_agents=4, scenario="square"), seed=1),
+        check_env_specs(selfplay_env(3, SelfPlayConfig(n_agents=n, scenario="square"), seed=0))
+    env = TransformedEnv(selfplay_env(6, SelfPlayConfig(n_agents=4, scenario="square"), seed=1),
                          RewardSum(in_keys=[(GROUP, "reward")], out_keys=[(GROUP, "episode_reward")]))
     pol = StraightToGoal()
     straight = TensorDictModule(lambda robot: pol.act(obs_tensordict({"robot": robot}, robot.shape[0])),
@@ -131,7 +131,7 @@ def test_one_parameter_set_for_any_number_of_agents():
     actor = build_actor("td3", {"name": "gatedgcn", "dim": 16, "layers": 2, "k": 8}, 1.0)
     n_params = sum(p.numel() for p in actor.parameters())
     for n in (4, 16):
-        env = SelfPlayEnv(2, SelfPlayConfig(n_agents=n), seed=0)
+        env = selfplay_env(2, SelfPlayConfig(n_agents=n), seed=0)
         td = actor(env.reset())
         assert td[GROUP, "action"].shape == (2, n, 2)
         assert sum(p.numel() for p in actor.parameters()) == n_params
@@ -142,8 +142,8 @@ def test_one_parameter_set_for_any_number_of_agents():
 
 def test_agents_see_each_other_as_neighbour_nodes():
     cfg = SelfPlayConfig(n_agents=3, frame="translate")
-    sim = SelfPlaySim(1, cfg)
-    sim.reset(ALL, torch.tensor([[[0.0, 0.0], [1.0, 0.0], [9.0, 0.0]]]), torch.tensor([[[0.0, 5.0]] * 3]))
+    sim = selfplay_sim(1, cfg)
+    reset_sp(sim, ALL, torch.tensor([[[0.0, 0.0], [1.0, 0.0], [9.0, 0.0]]]), torch.tensor([[[0.0, 5.0]] * 3]))
     o = sim.observe()
     assert o["humans"].shape == (1, 3, 3, 4)
     assert o["humans_mask"][0].tolist() == [[False, True, False], [True, False, False], [False, False, False]]
@@ -152,9 +152,10 @@ def test_agents_see_each_other_as_neighbour_nodes():
 
 def test_background_humans():
     cfg = SelfPlayConfig(n_agents=4, background="students001")
-    sim = SelfPlaySim(5, cfg)
-    start, goal, t0 = sim.draw(5, torch.Generator().manual_seed(0))
-    sim.reset(torch.ones(5, dtype=torch.bool), start, goal, t0)
+    sim = selfplay_sim(5, cfg)
+    ep = sim.scenario.draw(5, torch.Generator().manual_seed(0))
+    start, goal, t0 = ep["start"], ep["goal"], ep["t0"]
+    reset_sp(sim, torch.ones(5, dtype=torch.bool), start, goal, t0)
     assert sim.observe()["humans"].shape == (5, 4, 4 + sim.scene.max_humans, 4)
     assert (sim.min_clearance() > 0).all()
     assert torch.allclose(start.mean((0, 1)), sim.scene.centre, atol=1.0)  # placed around the scene centre
@@ -163,8 +164,8 @@ def test_background_humans():
 def test_episode_sets_are_seeded_and_square_starts_spaced():
     cfg = SelfPlayConfig(n_agents=12, scenario="square", jitter=0.0)  # spacing holds before jitter
     a, b = episode_set(cfg, 20, seed=3), episode_set(cfg, 20, seed=3)
-    assert all(torch.equal(x, y) for x, y in zip(a, b, strict=True))
-    start, goal, _ = a
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    start, goal = a["start"], a["goal"]
     for pts in (start, goal):
         d = (pts.unsqueeze(1) - pts.unsqueeze(2)).norm(dim=-1) + torch.eye(12) * 99
         assert d.min() >= cfg.min_spacing
@@ -175,12 +176,12 @@ def test_episode_sets_are_seeded_and_square_starts_spaced():
 
 
 def test_pettingzoo_api_and_seed():
-    parallel_api_test(SelfPlayParallelEnv(SelfPlayConfig(n_agents=4, scenario="square")), num_cycles=300)
-    parallel_seed_test(lambda: SelfPlayParallelEnv(SelfPlayConfig(n_agents=3)), num_cycles=50)
+    parallel_api_test(selfplay_parallel_env(SelfPlayConfig(n_agents=4, scenario="square")), num_cycles=300)
+    parallel_seed_test(lambda: selfplay_parallel_env(SelfPlayConfig(n_agents=3)), num_cycles=50)
 
 
 def test_pettingzoo_agents_leave_when_done():
-    env = SelfPlayParallelEnv(SelfPlayConfig(n_agents=3))
+    env = selfplay_parallel_env(SelfPlayConfig(n_agents=3))
     start = [[0.0, 0.0], [3.0, 0.0], [6.0, 0.0]]
     goal = [[0.3, 0.0], [3.0, 4.0], [6.0, 4.0]]
     obs, _ = env.reset(seed=0, options={"start": start, "goal": goal})

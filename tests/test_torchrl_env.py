@@ -4,19 +4,21 @@ import math
 
 import pytest
 import torch
+from torchrl.envs import TransformedEnv
 from torchrl.envs.utils import check_env_specs
+from worlds import replay_sim, reset_v1
 
-from crowdbench.envs.core import CrowdSim
-from crowdbench.envs.torchrl_env import CrowdEnv
+from crowdbench.envs.factory import replay_env
+from crowdbench.envs.transforms import HumanDropout, ProgressReward
 
 
 @pytest.mark.parametrize("batch", [1, 4])
 def test_check_env_specs(batch):
-    check_env_specs(CrowdEnv("students001", batch, seed=0))
+    check_env_specs(replay_env("students001", batch, seed=0))
 
 
 def test_rollout_autoresets_done_envs():
-    env = CrowdEnv("hotel", 6, seed=1)
+    env = replay_env("hotel", 6, seed=1)
     td = env.rollout(150, break_when_any_done=False)  # [B, T]
     done = td["next", "done"].squeeze(-1)
     assert done.any(1).all()  # every env finished an episode within 150 steps (time limit 100)
@@ -29,8 +31,8 @@ def test_rollout_autoresets_done_envs():
 
 
 def test_same_seed_same_rollout():
-    a = CrowdEnv("zara2", 3, seed=5)
-    b = CrowdEnv("zara2", 3, seed=5)
+    a = replay_env("zara2", 3, seed=5)
+    b = replay_env("zara2", 3, seed=5)
     torch.manual_seed(0)
     ra = a.rollout(40, break_when_any_done=False)
     torch.manual_seed(0)
@@ -39,12 +41,12 @@ def test_same_seed_same_rollout():
     assert torch.equal(ra["next", "agents", "reward"], rb["next", "agents", "reward"])
 
 
-def test_fixed_episode_list_and_core_agreement():
+def test_fixed_episode_list_and_world_agreement():
     t0, angle = torch.tensor([30, 60]), torch.tensor([0.3, 2.0])
-    env = CrowdEnv("students003", 2, episodes=(t0, angle))
+    env = replay_env("students003", 2, episodes=(t0, angle))
     td = env.reset()
-    sim = CrowdSim(env.sim.scene, 2)
-    sim.reset(torch.ones(2, dtype=torch.bool), t0, angle)
+    sim = replay_sim(env.world.scene, 2)
+    reset_v1(sim, torch.ones(2, dtype=torch.bool), t0, angle)
     assert torch.equal(td["agents", "observation", "humans"], sim.observe()["humans"])
     action = torch.tensor([[[0.6, 0.1]], [[0.2, -0.4]]])
     td["agents", "action"] = action
@@ -55,7 +57,7 @@ def test_fixed_episode_list_and_core_agreement():
 
 
 def test_nan_action_raises():
-    env = CrowdEnv("eth", 1)
+    env = replay_env("eth", 1)
     td = env.reset()
     td["agents", "action"] = torch.full((1, 1, 2), math.nan)
     with pytest.raises(ValueError, match="NaN"):
@@ -65,8 +67,9 @@ def test_nan_action_raises():
 def test_progress_reward_pays_per_metre_towards_the_goal():
     """Rotated frame: action (0.6, 0.8) moves 0.15 m towards the goal and 0.2 m sideways in 0.25 s."""
     t0, angle = torch.tensor([30, 60]), torch.tensor([0.3, 2.0])
-    plain = CrowdEnv("students003", 2, episodes=(t0, angle))
-    shaped = CrowdEnv("students003", 2, episodes=(t0, angle), progress_reward=0.5)
+    plain = replay_env("students003", 2, episodes=(t0, angle))
+    shaped = TransformedEnv(replay_env("students003", 2, episodes=(t0, angle)), ProgressReward(0.5))
+    check_env_specs(shaped)
     action = torch.tensor([[[0.6, 0.8]], [[0.0, 0.0]]])
     rewards = []
     for env in (plain, shaped):
@@ -79,21 +82,24 @@ def test_progress_reward_pays_per_metre_towards_the_goal():
     assert rewards[1][1] == rewards[0][1]  # standing still earns nothing
 
 
-def test_human_dropout_removes_humans_for_a_whole_episode():
-    env = CrowdEnv("students001", 64, seed=0, human_dropout=1.0)
+def test_human_dropout_hides_humans_for_a_whole_episode():
+    base = replay_env("students001", 64, seed=0)
+    env = TransformedEnv(base, HumanDropout(1.0, seed=0, n_slots=base.world.M, n_humans=base.world.Mh))
     td = env.reset()
-    keep, valid = env.sim.keep, env.sim.scene.valid[env.sim.t]
+    keep = env.transform.keep
+    valid = base.world.scene.valid[base.world.t]
     kept = (keep & valid).sum(1).float() / valid.sum(1).clamp_min(1)
     assert 0.3 < kept.mean().item() < 0.7  # E[1 - u] = 0.5 for u ~ U(0, 1)
     assert kept.std().item() > 0.1  # the density varies between episodes
-    seen = td["agents", "observation", "humans_mask"][:, 0]
-    assert not (seen & ~keep).any()  # a dropped human is never observed ...
     for _ in range(5):
+        seen = td["agents", "observation", "humans_mask"][:, 0]
+        assert not (seen & ~keep).any()  # a hidden human is never observed ...
+        assert (td["agents", "observation", "humans"][:, 0][~keep] == 0).all()
+        assert seen.any()  # ... while the kept ones are
         td["agents", "action"] = torch.zeros(64, 1, 2)
         td = env.step(td)["next"]
-        assert not (td["agents", "observation", "humans_mask"][:, 0] & ~keep).any()
-    _, _, hvalid = env.sim.humans()
-    assert not (hvalid & ~keep).any()  # ... and never collides (absent from the clearance test)
-    assert CrowdEnv("students001", 8, seed=0).sim.keep.all()  # default: the paper's crowd
+    assert torch.equal(env.transform.keep, keep)  # no env was reset: the same humans stay hidden
+    _, _, hvalid = base.world.humans()
+    assert (hvalid & ~keep).any()  # ... but they are still in the world (they can be hit)
     with pytest.raises(ValueError, match="human_dropout"):
-        CrowdEnv("students001", 2, human_dropout=1.5)
+        HumanDropout(1.5, seed=0, n_slots=3, n_humans=3)

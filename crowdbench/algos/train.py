@@ -17,7 +17,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictPrioritizedReplayBuffer, TensorDictReplayBuffer
-from torchrl.envs import Compose, InitTracker, RewardSum, TransformedEnv
+from torchrl.envs import InitTracker, RewardSum
 from torchrl.record.loggers.csv import CSVLogger
 from tqdm import tqdm
 
@@ -148,7 +148,9 @@ def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool =
     torch.manual_seed(cfg.seed)
     algo = a.name
     # replay (one robot) or self-play (n agents, one shared-weight policy); progress shaping for training only
-    env = make_env(cfg, progress_reward=t.progress_reward, human_dropout=t.human_dropout)
+    # InitTracker: the OU noise restarts from zero in every new episode
+    env = make_env(cfg, progress_reward=t.progress_reward, human_dropout=t.human_dropout,
+                   extra=(InitTracker(), RewardSum(in_keys=[(GROUP, "reward")], out_keys=[EPISODE_RETURN])))
     learner = Learner(cfg)
     actor = learner.actor
     replay_rng = torch.Generator().manual_seed(cfg.seed)
@@ -168,9 +170,8 @@ def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool =
     if remaining <= 0:
         return {"frames": frames, "updates": updates}
     # the replay buffer is not checkpointed (hundreds of MB): a resumed run refills it with warm-up frames
-    # InitTracker: the OU noise restarts from zero in every new episode
     collector = Collector(
-        TransformedEnv(env, Compose(InitTracker(), RewardSum(in_keys=[(GROUP, "reward")], out_keys=[EPISODE_RETURN]))),
+        env,
         exploration_policy(algo, actor, env.n_agents, cfg.env.v_max, a.exploration_sigma, a.exploration, a.ou_theta),
         frames_per_batch=fpb, total_frames=remaining, init_random_frames=a.warmup if state is None else 0,
         auto_register_policy_transforms=False,

@@ -42,8 +42,8 @@ import torch
 from tensordict import TensorDict
 
 from crowdbench.envs.core import segment_min_distance
-from crowdbench.envs.world import World
 from crowdbench.envs.policy import OBS, Policy
+from crowdbench.envs.world import World
 
 PLANNED_SUCCESS, PLANNED_COLLISION, PLANNED_TIMEOUT = 1, 2, 3
 

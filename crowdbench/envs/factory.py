@@ -87,11 +87,11 @@ def make_world(env_cfg, batch: int, **overrides):
     return replay_world(str(env_cfg.scene), batch, cfg)
 
 
-def make_env(cfg, progress_reward: float = 0.0, human_dropout: float = 0.0):
+def make_env(cfg, progress_reward: float = 0.0, human_dropout: float = 0.0, extra=()):
     """The TorchRL env of ``cfg.env``, ``env.batch`` wide, seeded with ``cfg.seed``.
 
     ``progress_reward`` (``train.progress_reward``) and ``human_dropout`` (``train.human_dropout``)
-    are training-only transforms (:mod:`crowdbench.envs.transforms`).
+    are training-only transforms (:mod:`crowdbench.envs.transforms`); ``extra`` transforms go after them.
     """
     from torchrl.envs import Compose, TransformedEnv
 
@@ -105,6 +105,7 @@ def make_env(cfg, progress_reward: float = 0.0, human_dropout: float = 0.0):
         transforms.append(HumanDropout(human_dropout, cfg.seed, world.M, world.Mh))
     if progress_reward:
         transforms.append(ProgressReward(progress_reward))
+    transforms += list(extra)
     return TransformedEnv(env, Compose(*transforms)) if transforms else env
 
 
@@ -113,3 +114,38 @@ def make_parallel_env(env_cfg, **overrides):
     from crowdbench.envs.pettingzoo_env import CrowdParallelEnv
 
     return CrowdParallelEnv(*make_world(env_cfg, 1, **overrides))
+
+
+def replay_env(scene: str = "students001", batch: int = 1, cfg: SimConfig | None = None, seed: int = 0,
+               episodes=None):
+    """The TorchRL env of protocol v1 on ``scene`` (``episodes``: an optional fixed list ``(t0 [E], angle [E])``)."""
+    from crowdbench.envs.torchrl_env import CrowdEnv
+
+    world, scenario = replay_world(scene, batch, cfg)
+    if episodes is not None and not isinstance(episodes, dict):
+        episodes = scenario.episodes(*episodes)
+    return CrowdEnv(world, scenario, seed=seed, episodes=episodes)
+
+
+def replay_parallel_env(scene: str = "students001", cfg: SimConfig | None = None, render_mode: str | None = None):
+    """The PettingZoo env of protocol v1 on ``scene`` (one robot, the training distribution of episodes)."""
+    from crowdbench.envs.pettingzoo_env import CrowdParallelEnv
+
+    return CrowdParallelEnv(*replay_world(scene, 1, cfg), render_mode=render_mode)
+
+
+def selfplay_env(batch: int = 1, cfg=None, seed: int = 0, episodes: dict | None = None):
+    """The TorchRL self-play env of ``cfg`` (a :class:`SelfPlayConfig`; default: 8 agents, circle)."""
+    from crowdbench.envs.selfplay import SelfPlayConfig
+    from crowdbench.envs.torchrl_env import CrowdEnv
+
+    world, scenario = selfplay_world(cfg or SelfPlayConfig(), batch)
+    return CrowdEnv(world, scenario, seed=seed, episodes=episodes)
+
+
+def selfplay_parallel_env(cfg=None, render_mode: str | None = None):
+    """The PettingZoo self-play env of ``cfg`` (agents ``agent_0 ..``)."""
+    from crowdbench.envs.pettingzoo_env import CrowdParallelEnv
+    from crowdbench.envs.selfplay import SelfPlayConfig
+
+    return CrowdParallelEnv(*selfplay_world(cfg or SelfPlayConfig(), 1), render_mode=render_mode)

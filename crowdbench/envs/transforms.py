@@ -18,7 +18,7 @@ _REWARD = (GROUP, "reward")
 
 def _reset_mask(tensordict: TensorDictBase | None, batch: int) -> torch.Tensor:
     """The environments a reset call starts anew (as :class:`~crowdbench.envs.torchrl_env.CrowdEnv` reads it)."""
-    if tensordict is not None and "_reset" in tensordict.keys():
+    if tensordict is not None and "_reset" in tensordict:
         return tensordict["_reset"].reshape(batch, -1).any(-1)
     return torch.ones(batch, dtype=torch.bool)
 
