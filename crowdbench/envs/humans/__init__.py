@@ -1,0 +1,1 @@
+"""Crowd models: how the humans move."""
