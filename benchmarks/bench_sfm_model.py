@@ -1,7 +1,8 @@
 """Cost of one call of the batched social-force human model (crowdbench/envs/humans/sfm.py):
-N = 1024 worlds, M = 5, 20, 50 humans plus one robot (in ``others_*``), float32, at 1 and 2 threads.
+N = 1024 worlds, M = 5, 20, 50 humans plus one robot (in ``others_*``), float32, at 1 and 2 threads,
+eager and wrapped in ``torch.compile(dynamic=False)`` (one compile per shape, timed separately).
 
-    python benchmarks/bench_sfm_model.py [--worlds 1024] [--reps 50]
+    python benchmarks/bench_sfm_model.py [--worlds 1024] [--reps 50] [--no-compile]
 
 Prints ms per call (median of ``reps`` timed calls after warm-up) and world-steps/s. Run it with nothing
 else running on the machine.
@@ -28,12 +29,12 @@ def scene(n: int, m: int, g: torch.Generator):
     return pos, vel, goal, valid, rob, rvel
 
 
-def time_call(n: int, m: int, reps: int) -> float:
+def time_call(n: int, m: int, reps: int, fn=social_force_velocities) -> float:
     pos, vel, goal, valid, rob, rvel = scene(n, m, torch.Generator().manual_seed(0))
     params = SFMParams()
 
     def call():
-        return social_force_velocities(
+        return fn(
             pos, vel, goal, valid, 0.3, 1.3, dt=0.25, params=params,
             others_pos=rob, others_vel=rvel, others_radius=0.3,
         )  # fmt: skip
@@ -53,15 +54,26 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--worlds", type=int, default=1024)
     ap.add_argument("--reps", type=int, default=50)
+    ap.add_argument("--no-compile", action="store_true")
     args = ap.parse_args()
     print(f"torch {torch.__version__}, N = {args.worlds} worlds, one robot, float32")
-    for threads in (1, 2):
-        torch.set_num_threads(threads)
-        for m in (5, 20, 50):
-            s = time_call(args.worlds, m, args.reps)
-            print(
-                f"threads={threads} M={m:3d}: {s * 1e3:7.2f} ms/call  {args.worlds / s:12,.0f} world-steps/s"
-            )
+    variants = [("eager", social_force_velocities)]
+    if not args.no_compile:
+        compiled = torch.compile(social_force_velocities, dynamic=False)
+        for m in (5, 20, 50):  # compile outside the timings
+            t = time.perf_counter()
+            time_call(args.worlds, m, 1, compiled)
+            print(f"torch.compile M={m}: {time.perf_counter() - t:.1f} s to compile")
+        variants.append(("compiled", compiled))
+    for name, fn in variants:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            for m in (5, 20, 50):
+                s = time_call(args.worlds, m, args.reps, fn)
+                print(
+                    f"{name:8s} threads={threads} M={m:3d}: {s * 1e3:7.2f} ms/call"
+                    f"  {args.worlds / s:12,.0f} world-steps/s"
+                )
 
 
 if __name__ == "__main__":

@@ -187,8 +187,29 @@ def _pysf_unwrapped_theta_bad(pos, vel):
     return (np.abs(theta) > np.pi).any(axis=1)
 
 
-def test_matches_pysocialforce():
+def _wrap_pysf_theta(monkeypatch):
+    """Make PySocialForce's SocialForce wrap theta: it computes ``vector_angles(t) - vector_angles(e)``, so
+    the second call (on e, right after the one on t) returns angle(t) - wrap(angle(t) - angle(e))."""
+    from pysocialforce import forces
+
+    orig, last = forces.stateutils.vector_angles, []
+
+    def angles(vecs):
+        a = orig(vecs)
+        if not last:
+            last.append(a)
+            return a
+        at = last.pop()
+        return at - (np.mod(at - a + np.pi, 2 * np.pi) - np.pi)
+
+    monkeypatch.setattr(forces.stateutils, "vector_angles", angles)
+
+
+@pytest.mark.parametrize("wrap_theta", [False, True], ids=["as-shipped", "theta-wrapped"])
+def test_matches_pysocialforce(wrap_theta, monkeypatch):
     psf = pytest.importorskip("pysocialforce")
+    if wrap_theta:
+        _wrap_pysf_theta(monkeypatch)
     logging.getLogger("numba").setLevel(logging.WARNING)
     params = SFMParams(body_strength=0.0, max_speed_factor=1.0)  # PySocialForce caps at its desired speed
     rng = np.random.default_rng(0)
@@ -217,7 +238,7 @@ def test_matches_pysocialforce():
         )
         acc = social_force_accelerations(*args, 0.3, t64(v_pref[None, :h]), params=params, **kw)[0].numpy()
         v = social_force_velocities(*args, 0.3, t64(v_pref[None, :h]), dt=DT, params=params, **kw)[0].numpy()
-        bad = _pysf_unwrapped_theta_bad(pos, vel)[:h]
+        bad = _pysf_unwrapped_theta_bad(pos, vel)[:h] & (not wrap_theta)
         ok = np.isclose(acc, f_ref[:h], rtol=1e-9, atol=1e-9).all(axis=1)
         far = np.linalg.norm(goal[:h] - pos[:h], axis=1) > 0.5  # PySocialForce zeroes v within 0.5 m of goal
         ok_v = np.isclose(v, v_ref[:h], rtol=1e-9, atol=1e-9).all(axis=1) | ~far
@@ -227,6 +248,6 @@ def test_matches_pysocialforce():
         total += h
         if (~ok).any():
             worst = max(worst, float(np.abs(acc - f_ref[:h])[~ok].max()))
-    print(f"PySocialForce: {agree}/{total} humans agree to 1e-9 ({clean} have no pair hit by its unwrapped theta);"
+    print(f"PySocialForce (wrap_theta={wrap_theta}): {agree}/{total} humans agree to 1e-9 ({clean} have no pair hit by its unwrapped theta);"
           f" largest force difference elsewhere {worst:.3g} m/s^2")  # fmt: skip
     assert agree >= clean > 0.3 * total
