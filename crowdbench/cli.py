@@ -170,10 +170,36 @@ def run_selfplay_eval(policy, cfg, out: Path, overrides: list[str]) -> dict:
     return results
 
 
+def run_crowdnav_eval(policy, cfg, out: Path, overrides: list[str]) -> dict:
+    """``env=crowdnav``: CrowdNav's test cases of every ``env.eval_settings`` (docs/crowdnav.md)."""
+    from crowdbench.envs.factory import sim_config
+    from crowdbench.eval import format_table
+    from crowdbench.eval_crowdnav import evaluate_crowdnav
+
+    e = cfg.env
+    try:
+        results = evaluate_crowdnav(policy, sim_config(e), None if e.eval_settings is None else list(e.eval_settings),
+                                    e.eval_episodes, out_dir=out, save_episodes=bool(cfg.eval.save_episodes),
+                                    meta={"seed": cfg.seed, "overrides": overrides})
+    except ValueError as err:
+        raise UsageError(str(err)) from None
+    print(format_table(results))
+    print(f"results written to {out / 'results.json'}")
+    return results
+
+
 def cmd_eval(overrides: list[str]) -> int:
-    from crowdbench.envs.factory import is_selfplay
+    from crowdbench.envs.factory import env_name, is_selfplay
 
     cfg = compose(overrides)
+    try:
+        name = env_name(cfg.env)
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+    if name == "crowdnav":
+        policy = make_policy(str(cfg.policy), cfg)
+        run_crowdnav_eval(policy, cfg, output_dir(cfg, "eval-crowdnav", str(cfg.policy)), overrides)
+        return 0
     if is_selfplay(cfg.env):  # every agent acts from the policy (a robot checkpoint too: the transfer test)
         if str(cfg.policy) in policies.PRIVILEGED:
             raise UsageError(f"the {cfg.policy} plans against replayed humans, not reacting agents: not available "
@@ -242,9 +268,10 @@ def run_one(cfg, overrides: list[str]) -> dict:
         policy = policy_from_checkpoint(out / "checkpoint.pt")
     except ValueError as e:  # CheckpointError included: bad checkpoint, bad algo/replay/logger value
         raise UsageError(str(e)) from None
-    from crowdbench.envs.factory import is_selfplay
+    from crowdbench.envs.factory import env_name
 
-    return (run_selfplay_eval if is_selfplay(cfg.env) else run_eval)(policy, cfg, out, overrides)
+    run = {"selfplay": run_selfplay_eval, "crowdnav": run_crowdnav_eval}.get(env_name(cfg.env), run_eval)
+    return run(policy, cfg, out, overrides)
 
 
 def cmd_leaderboard(args: list[str]) -> int:

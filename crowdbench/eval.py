@@ -59,21 +59,22 @@ def select_episodes(saved: dict, n: int | None) -> list[dict]:
 
 
 @torch.no_grad()
-def drive(env: CrowdEnv, policy: Policy, recorder=None, on_reset=None, on_step=None) -> None:
+def drive(env: CrowdEnv, policy: Policy, recorder=None, on_reset=None, on_step=None, privileged_view=None) -> None:
     """The evaluation loop of every protocol: reset ``env`` (its fixed episode list, one episode per
     environment), then step it with ``policy`` until every agent is done or the time limit.
 
     ``on_reset(world)`` sees the start state, ``on_step(world, info)`` collects traces after every step;
     ``recorder(world, td, action)`` (e.g. :class:`crowdbench.viz.record.SceneRecorder`), if given, is
     called before every step, its optional ``after_step(world, info)`` after it and ``close()`` at the end. Finished episodes stay frozen
-    (no reset), so episode ``i`` of the list is environment ``i`` throughout.
+    (no reset), so episode ``i`` of the list is environment ``i`` throughout. A privileged policy (the
+    oracle) plans from ``privileged_view`` (default: the world, whose replayed scene is the future).
     """
     world = env.world
     td = env.reset()
     everyone = torch.ones(world.B, dtype=torch.bool)
     policy.reset(everyone)
     if getattr(policy, "privileged", False):  # the oracle: plans from the scene's future (docs/protocol.md, "Oracle")
-        policy.plan(world)
+        policy.plan(world if privileged_view is None else privileged_view)
     if on_reset is not None:
         on_reset(world)
     for _ in range(world.cfg.time_limit):
@@ -100,7 +101,7 @@ def rollout(policy: Policy, scene: str, episodes: list[dict], cfg: SimConfig, re
     return robot_traces(CrowdEnv(world, scenario, episodes=scenario.from_list(episodes)), policy, recorder)
 
 
-def robot_traces(env: CrowdEnv, policy: Policy, recorder=None) -> dict:
+def robot_traces(env: CrowdEnv, policy: Policy, recorder=None, privileged_view=None) -> dict:
     """Traces ``[T, B]`` of robot 0 of every environment of ``env`` driven by ``policy``."""
     world = env.world
     xy, clear, swept, reward, active = [], [], [], [], []
@@ -117,7 +118,7 @@ def robot_traces(env: CrowdEnv, policy: Policy, recorder=None) -> dict:
     def on_reset(w):
         first.update(xy=w.pos[:, 0].clone(), clearance0=w.min_clearance()[:, 0])
 
-    drive(env, policy, recorder, on_reset, on_step)
+    drive(env, policy, recorder, on_reset, on_step, privileged_view)
     return {
         "xy": torch.stack([first["xy"], *xy]), "clearance": torch.stack(clear), "swept": torch.stack(swept),
         "reward": torch.stack(reward), "active": torch.stack(active), "outcome": world.outcome[:, 0].clone(),

@@ -1,0 +1,149 @@
+"""The CrowdNav protocol (Chen et al., ICRA 2019, "Crowd-Robot Interaction"): one robot crossing a
+crowd of ORCA (or social-force) humans, with CrowdNav's settings and its test cases.
+
+- Geometry and settings (``crowd_nav/configs/env.config``): robot and humans of radius 0.3 m,
+  ``v_pref`` 1 m/s, ``dt`` 0.25 s, 25 s limit, discomfort distance 0.2 m, reward 1 / -0.25 /
+  ``(d - 0.2) * 0.5 * dt`` (:func:`~crowdbench.envs.core.step_reward`, ``reward: crowdnav``), an invisible
+  robot by default (humans ignore it), a robot that observes every human.
+- Scenarios: ``circle`` (humans on a 4 m circle, each heading for the opposite point) and ``square``
+  (humans crossing a 10 m square between its left and right halves); the robot always goes from
+  (0, -4) to (0, 4). Episode ``i`` of the test list is CrowdNav's test case ``i`` with the same
+  initial positions and goals (:mod:`crowdbench.envs.crowdnav_cases`, reproduced bit for bit).
+- Training draws CrowdNav *training* cases (seeds ``2000 + k``) in a seeded random order.
+
+What differs from CrowdNav's simulator, and why:
+
+- collisions are tested on the actual motion of both bodies over the step; CrowdNav moves the human
+  along its *previous* velocity in that test (``crowd_sim.py`` l.331-351), which misses a collision
+  whenever the human's new velocity differs;
+- a timeout is declared after 100 steps (25 s); CrowdNav's check ``global_time >= time_limit - 1``
+  ends episodes from 24 s on and before success is tested (l.368);
+- the humans' ORCA is solved for all humans at once; equivalent to CrowdNav's one RVO2 simulator
+  per human, because an agent's new velocity depends only on the others' current positions and
+  velocities, never on their preferred velocities.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from crowdbench.envs.core import SimConfig
+from crowdbench.envs.crowdnav_cases import CROWDNAV, case_list, crowdnav_case
+from crowdbench.envs.humans.reactive import CROWDS, OrcaParams
+
+SCENARIOS = ("circle", "square")
+HUMAN_MODELS = tuple(CROWDS)
+
+
+@dataclass
+class CrowdNavConfig(SimConfig):
+    robot_radius: float = CROWDNAV.robot_radius
+    human_radius: float = CROWDNAV.human_radius
+    danger_dist: float = CROWDNAV.discomfort_dist
+    sensing_range: float = 100.0  # m: CrowdNav's robot observes every human
+    r_reach: float = CROWDNAV.success_reward
+    r_fail: float = CROWDNAV.collision_penalty
+    reward: str = "crowdnav"
+    discomfort_factor: float = CROWDNAV.discomfort_penalty_factor
+    scenario: str = "circle"  # circle | square
+    n_humans: int = CROWDNAV.human_num
+    humans: str = "orca"  # orca | sfm
+    robot_visible: bool = CROWDNAV.robot_visible
+    human_v_pref: float = CROWDNAV.human_v_pref
+    orca_neighbor_dist: float = OrcaParams.neighbor_dist
+    orca_max_neighbors: int = OrcaParams.max_neighbors
+    orca_time_horizon: float = OrcaParams.time_horizon
+    orca_radius_margin: float = OrcaParams.radius_margin
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.scenario not in SCENARIOS:
+            raise ValueError(f"unknown env.scenario {self.scenario!r} for env=crowdnav; valid: {', '.join(SCENARIOS)}")
+        if self.humans not in HUMAN_MODELS:
+            raise ValueError(f"unknown env.humans {self.humans!r} for env=crowdnav; valid: {', '.join(HUMAN_MODELS)}")
+        if self.n_humans < 1:
+            raise ValueError(f"env.n_humans must be >= 1, got {self.n_humans}")
+        if abs(self.dt - CROWDNAV.dt) > 1e-12 or self.v_max != CROWDNAV.robot_v_pref:
+            # the case geometry (noise scaled by v_pref, 0.8 m spacing) is CrowdNav's only at its settings
+            raise ValueError(f"env=crowdnav fixes dt={CROWDNAV.dt} and v_max={CROWDNAV.robot_v_pref}")
+
+    @property
+    def orca(self) -> OrcaParams:
+        return OrcaParams(self.orca_neighbor_dist, int(self.orca_max_neighbors), self.orca_time_horizon,
+                          self.orca_radius_margin)
+
+
+def crowdnav_crowd(cfg: CrowdNavConfig, batch: int):
+    """The crowd model ``cfg.humans`` for ``batch`` environments of ``cfg.n_humans`` humans."""
+    kwargs = {"params": cfg.orca} if cfg.humans == "orca" else {}
+    return CROWDS[cfg.humans](batch, cfg.n_humans, cfg.human_radius, cfg.human_v_pref, cfg.dt,
+                              robot_visible=cfg.robot_visible, robot_radius=cfg.robot_radius, **kwargs)
+
+
+def _episodes(cases: dict) -> dict[str, torch.Tensor]:
+    """Stacked CrowdNav cases (numpy, :func:`case_list` layout) as the world's episode tensors."""
+    f32 = lambda k: torch.from_numpy(np.asarray(cases[k], dtype=np.float32))
+    return {"start": f32("robot_start").unsqueeze(1), "goal": f32("robot_goal").unsqueeze(1),
+            "human_start": f32("human_start"), "human_goal": f32("human_goal"),
+            "case": torch.from_numpy(np.asarray(cases["episode"], dtype=np.int64))}
+
+
+def _stack(cases: list[dict]) -> dict:
+    keys = ("robot_start", "robot_goal", "human_start", "human_goal")
+    out = {k: np.stack([c[k] for c in cases]) for k in keys}
+    out["episode"] = np.array([c["case"] for c in cases], dtype=np.int64)
+    return out
+
+
+def list_digest(episodes: dict[str, torch.Tensor]) -> str:
+    """sha256 of an episode list's tensors: a fixed list is the same bytes on every machine."""
+    h = hashlib.sha256()
+    for k in sorted(episodes):
+        h.update(k.encode())
+        h.update(episodes[k].contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
+class CrowdNavScenario:
+    """CrowdNav circle or square crossing; episodes from CrowdNav's case seeding."""
+
+    name = "crowdnav"
+
+    def __init__(self, cfg: CrowdNavConfig):
+        self.cfg, self.A = cfg, 1
+
+    def test_list(self, n: int = CROWDNAV.test_size) -> dict[str, torch.Tensor]:
+        """The fixed test list: episode ``i`` is CrowdNav's test case ``i`` (``case``)."""
+        return _episodes(case_list(self.cfg.scenario, self.cfg.n_humans, n, "test"))
+
+    def cases(self, ids, phase: str = "test") -> dict[str, torch.Tensor]:
+        return _episodes(_stack([crowdnav_case(int(i), self.cfg.scenario, self.cfg.n_humans, phase) for i in ids]))
+
+    def with_options(self, episode: dict, options: dict) -> dict[str, torch.Tensor]:
+        """PettingZoo ``reset`` option ``case``: CrowdNav's test case of that number."""
+        return self.cases([int(options["case"])]) if "case" in options else episode
+
+    def sampler(self, seed: int) -> CaseSampler:
+        return CaseSampler(self, seed)
+
+
+class CaseSampler:
+    """The training stream: CrowdNav training cases (``phase="train"``) in a seeded random order."""
+
+    def __init__(self, scenario: CrowdNavScenario, seed: int):
+        self.scenario = scenario
+        self.gen = torch.Generator().manual_seed(int(seed))
+
+    def __call__(self, n: int) -> dict[str, torch.Tensor]:
+        ids = torch.randint(0, CROWDNAV.train_size, (n,), generator=self.gen).tolist()
+        return self.scenario.cases(ids, "train")
+
+    def state_dict(self) -> dict:
+        return {"rng": self.gen.get_state()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.gen.set_state(state["rng"])

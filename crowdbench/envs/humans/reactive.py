@@ -1,0 +1,129 @@
+"""Reactive crowd models: humans that walk to their own goals and avoid each other (and the robot
+when ``robot_visible``), integrated by the world step after step.
+
+State per environment: position, velocity and goal of ``M`` humans. Each step, every human's new
+velocity is decided from the state at the start of the step (as CrowdNav does: all human actions
+first, then everybody moves), then ``p += v * dt``. An environment whose agents are all done is
+frozen. The preferred velocity is CrowdNav's (``crowd_sim/envs/policy/orca.py``): towards the goal
+at ``v_pref``, and ``goal - p`` itself (per step of one second) within ``v_pref`` metres of it, so a
+human slows down near its goal and stays there; goals never change and nobody respawns.
+
+Episode keys: ``human_start``, ``human_goal`` ``[n, M, 2]``; optional ``human_valid`` ``[n, M]``
+(padding for fewer humans; an absent human is never seen and never moves).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from crowdbench.envs.humans.orca import orca_velocities
+from crowdbench.envs.humans.sfm import SFMParams, social_force_velocities
+
+
+@dataclass(frozen=True)
+class OrcaParams:
+    """ORCA settings of the humans; defaults are CrowdNav's (``crowd_sim/envs/policy/orca.py`` l.60-66)."""
+
+    neighbor_dist: float = 10.0  # m
+    max_neighbors: int = 10
+    time_horizon: float = 5.0  # s
+    radius_margin: float = 0.01  # m added to every body's radius, as CrowdNav does (safety_space 0)
+
+
+class ReactiveCrowd:
+    """Humans moved by a reactive model (:meth:`velocities`); subclasses: :class:`OrcaCrowd`, :class:`SfmCrowd`."""
+
+    name = "reactive"
+
+    def __init__(self, batch: int, n_humans: int, radius: float, v_pref: float, dt: float,
+                 robot_visible: bool, robot_radius: float):
+        self.M = int(n_humans)
+        self.radius, self.v_pref, self.dt = float(radius), float(v_pref), float(dt)
+        self.robot_visible, self.robot_radius = bool(robot_visible), float(robot_radius)
+        self.pos = torch.zeros(batch, self.M, 2)
+        self.vel = torch.zeros(batch, self.M, 2)
+        self.goal = torch.zeros(batch, self.M, 2)
+        self.valid = torch.zeros(batch, self.M, dtype=torch.bool)
+        self.t = torch.zeros(batch, dtype=torch.long)  # steps since the episode started
+
+    def reset(self, mask: torch.Tensor, idx: torch.Tensor, episode: dict) -> None:
+        start = episode["human_start"].to(self.pos.dtype)
+        self.pos[idx] = start
+        self.vel[idx] = 0.0
+        self.goal[idx] = episode["human_goal"].to(self.pos.dtype)
+        self.valid[idx] = episode.get("human_valid", torch.ones(start.shape[:2], dtype=torch.bool))
+        self.t[idx] = 0
+
+    def observe(self):
+        return self.pos, self.vel, self.valid
+
+    def preferred_velocity(self) -> torch.Tensor:
+        to_goal = self.goal - self.pos
+        dist = to_goal.norm(dim=-1, keepdim=True)
+        return to_goal * (self.v_pref / dist.clamp_min(1e-12)).clamp(max=1.0)
+
+    def velocities(self, world) -> torch.Tensor:
+        raise NotImplementedError
+
+    def advance(self, env_active: torch.Tensor, world):
+        new_vel = self.velocities(world) * self.valid.unsqueeze(-1)
+        moving = (env_active.unsqueeze(-1) & self.valid).unsqueeze(-1)
+        prev = self.pos
+        self.vel = torch.where(moving, new_vel, self.vel)
+        self.pos = torch.where(moving, prev + new_vel * self.dt, prev)
+        self.t = torch.where(env_active, self.t + 1, self.t)
+        return prev, self.pos, self.valid
+
+
+class OrcaCrowd(ReactiveCrowd):
+    """ORCA humans (van den Berg et al. 2011), solved batched (:func:`orca_velocities`, validated against RVO2).
+
+    Every human solves ORCA among all humans within ``neighbor_dist`` (the nearest ``max_neighbors``)
+    and, when ``robot_visible``, the robots: a robot enters as an agent with its current velocity, so
+    the human takes its reciprocal half of the avoidance. The robots' own ORCA answers are discarded.
+    """
+
+    name = "orca"
+
+    def __init__(self, *args, params: OrcaParams = OrcaParams(), **kwargs):
+        super().__init__(*args, **kwargs)
+        self.params = params
+
+    def velocities(self, world) -> torch.Tensor:
+        p, M = self.params, self.M
+        pos, vel, valid = self.pos, self.vel, self.valid
+        radius = torch.full(valid.shape, self.radius + p.radius_margin)
+        pref = self.preferred_velocity()
+        if self.robot_visible:
+            pos, vel = torch.cat((pos, world.pos), 1), torch.cat((vel, world.vel), 1)
+            pref = torch.cat((pref, world.vel), 1)
+            valid = torch.cat((valid, world.present()), 1)
+            radius = torch.cat((radius, torch.full(world.outcome.shape, self.robot_radius + p.radius_margin)), 1)
+        new = orca_velocities(pos, vel, pref, valid, radius, self.v_pref, time_horizon=p.time_horizon, dt=self.dt,
+                              neighbor_dist=p.neighbor_dist, max_neighbors=p.max_neighbors)
+        return new[:, :M]
+
+
+class SfmCrowd(ReactiveCrowd):
+    """Social-force humans (Helbing & Molnar 1995; Moussaid et al. 2009, as PySocialForce): see
+    :mod:`crowdbench.envs.humans.sfm`. When ``robot_visible``, the robots repel them as pedestrians
+    moving at their own velocity, plus a short-range body force."""
+
+    name = "sfm"
+
+    def __init__(self, *args, params: SFMParams = SFMParams(), **kwargs):
+        super().__init__(*args, **kwargs)
+        self.params = params
+
+    def velocities(self, world) -> torch.Tensor:
+        others = {}
+        if self.robot_visible:
+            others = {"others_pos": world.pos, "others_vel": world.vel, "others_valid": world.present(),
+                      "others_radius": self.robot_radius}
+        return social_force_velocities(self.pos, self.vel, self.goal, self.valid, self.radius, self.v_pref,
+                                       dt=self.dt, params=self.params, **others)
+
+
+CROWDS = {"orca": OrcaCrowd, "sfm": SfmCrowd}

@@ -1,0 +1,113 @@
+"""CrowdNav evaluation: CrowdNav's 500 test cases -> batched rollout through the env -> metrics -> results JSON.
+
+Setting ``circle_n5`` is circle crossing with 5 humans (``square_n20``: square crossing, 20 humans);
+episode ``i`` is CrowdNav's test case ``i`` (:mod:`crowdbench.envs.crowdnav_cases`). The metrics are
+protocol v1's (:func:`crowdbench.eval.episode_metrics`), with CrowdNav's discomfort distance as the
+danger distance. The oracle is privileged only with an invisible robot: the humans' future then
+does not depend on the robot, so it is simulated once without it and handed to the planner.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from dataclasses import asdict, replace
+from pathlib import Path
+from types import SimpleNamespace
+
+import torch
+
+from crowdbench.data.scenes import Scene
+from crowdbench.envs.crowdnav import CrowdNavConfig, CrowdNavScenario, crowdnav_crowd, list_digest
+from crowdbench.envs.factory import crowdnav_world
+from crowdbench.envs.policy import Policy
+from crowdbench.envs.torchrl_env import CrowdEnv
+from crowdbench.eval import aggregate, episode_metrics, robot_traces, select_episodes
+from crowdbench.numerics import describe
+
+PROTOCOL = "crowdnav-v1"
+SETTING = re.compile(r"^(circle|square)_n([1-9][0-9]*)$")
+
+
+def parse_setting(name: str) -> tuple[str, int]:
+    m = SETTING.match(str(name))
+    if not m:
+        raise ValueError(f"unknown CrowdNav setting {name!r}; valid: circle_n<humans> or square_n<humans>, e.g. circle_n5")
+    return m.group(1), int(m.group(2))
+
+
+def future_view(world, cfg: CrowdNavConfig, episodes: dict[str, torch.Tensor]):
+    """What the oracle plans against: the humans' whole future, simulated without the robot, laid out as
+    one :class:`Scene` whose episode ``b`` starts at grid index ``b * (T + 1)``."""
+    B, T, M = world.B, cfg.time_limit, cfg.n_humans
+    crowd = crowdnav_crowd(replace(cfg, robot_visible=False), B)
+    crowd.reset(torch.ones(B, dtype=torch.bool), torch.arange(B), episodes)
+    pos, vel = [crowd.pos.clone()], [crowd.vel.clone()]
+    running = torch.ones(B, dtype=torch.bool)
+    for _ in range(T):
+        crowd.advance(running, None)
+        pos.append(crowd.pos.clone())
+        vel.append(crowd.vel.clone())
+    P, V = torch.stack(pos, 1), torch.stack(vel, 1)  # [B, T + 1, M, 2]
+    prev = torch.cat((P[:, :1], P[:, :-1]), 1)
+    flat = lambda x: x.reshape(B * (T + 1), *x.shape[2:])
+    scene = Scene(name="crowdnav-future", dt=cfg.dt, row_period=cfg.dt, pos=flat(P), prev=flat(prev), vel=flat(V),
+                  valid=torch.ones(B * (T + 1), M, dtype=torch.bool), ped_id=flat(torch.arange(M).expand(B, T + 1, M)),
+                  centre=torch.zeros(2))
+    return SimpleNamespace(B=B, t=torch.arange(B) * (T + 1), scene=scene, pos=world.pos, goal=world.goal, cfg=world.cfg,
+                           radius_sum=world.radius_sum, M=M, clip_action=world.clip_action)
+
+
+def evaluate_crowdnav(policy: Policy, cfg: CrowdNavConfig, settings=None, episodes: int | None = None,
+                      out_dir: Path | None = None, save_episodes: bool = False, meta: dict | None = None) -> dict:
+    """Evaluate ``policy`` on CrowdNav's test cases of every setting (default: ``cfg``'s scenario and crowd size)."""
+    settings = [f"{cfg.scenario}_n{cfg.n_humans}"] if not settings else [str(s) for s in settings]
+    parsed = [parse_setting(s) for s in settings]
+    privileged = getattr(policy, "privileged", False)
+    if privileged and cfg.robot_visible:
+        raise ValueError("the oracle knows the humans' future, which depends on a visible robot: "
+                         "available with env.robot_visible=false only")
+    results = {"protocol": PROTOCOL, "policy": policy.name, "meta": meta or {}, "numerics": describe(),
+               "humans": cfg.humans, "robot_visible": cfg.robot_visible, "scenes": {}, "lists": {}}
+    if privileged:
+        results["privileged"] = True
+    rows = []
+    for name, (scenario, n) in zip(settings, parsed, strict=True):
+        c = replace(cfg, scenario=scenario, n_humans=n, frame=policy.frame)
+        world, scen = crowdnav_world(c, 1)
+        full = scen.test_list()
+        results["lists"][name] = list_digest(full)
+        keep = torch.tensor([e["episode"] for e in select_episodes({"episodes": [{"episode": i} for i in
+                                                                                 range(len(full["case"]))]}, episodes)])
+        eps = {k: v[keep] for k, v in full.items()}
+        world, scen = crowdnav_world(c, len(keep))
+        env = CrowdEnv(world, scen, episodes=eps)
+        view = future_view(world, c, eps) if privileged else None
+        tr = robot_traces(env, policy, privileged_view=view)
+        m = episode_metrics(tr, c)
+        results["scenes"][name] = aggregate(m)
+        if save_episodes:
+            rows += episode_rows(name, eps, tr, m, c)
+    results["sim_config"] = {k: v for k, v in asdict(cfg).items() if k not in ("scenario", "n_humans", "frame")}
+    if out_dir is not None:
+        out_dir = Path(out_dir)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "results.json").write_text(json.dumps(results, indent=1) + "\n")
+        if save_episodes:
+            with open(out_dir / "episodes.jsonl", "w") as f:
+                f.writelines(json.dumps(r) + "\n" for r in rows)
+    return results
+
+
+def episode_rows(setting: str, eps: dict, tr: dict, m: dict, cfg: CrowdNavConfig) -> list[dict]:
+    from crowdbench.envs.core import OUTCOMES
+
+    rows = []
+    for b, case in enumerate(eps["case"].tolist()):
+        n = int(m["steps"][b])
+        ok = bool(m["success"][b])
+        rows.append({"protocol": PROTOCOL, "setting": setting, "episode": case, "dt": cfg.dt,
+                     "robot_xy": [[round(x, 5) for x in p] for p in tr["xy"][: n + 1, b].tolist()],
+                     "outcome": OUTCOMES[int(m["outcome"][b])], "nav_time_s": float(m["nav_time"][b]) if ok else None,
+                     "danger_steps": int(m["danger_steps"][b]), "min_clearance": float(m["min_clearance"][b])})
+    return rows
