@@ -18,7 +18,7 @@ from types import SimpleNamespace
 import torch
 
 from crowdbench.data.scenes import Scene
-from crowdbench.envs.crowdnav import CrowdNavConfig, CrowdNavScenario, crowdnav_crowd, list_digest
+from crowdbench.envs.crowdnav import CrowdNavConfig, crowdnav_crowd, list_digest
 from crowdbench.envs.factory import crowdnav_world
 from crowdbench.envs.policy import Policy
 from crowdbench.envs.torchrl_env import CrowdEnv

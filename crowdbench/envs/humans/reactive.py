@@ -87,9 +87,9 @@ class OrcaCrowd(ReactiveCrowd):
 
     name = "orca"
 
-    def __init__(self, *args, params: OrcaParams = OrcaParams(), **kwargs):
+    def __init__(self, *args, params: OrcaParams | None = None, **kwargs):
         super().__init__(*args, **kwargs)
-        self.params = params
+        self.params = params or OrcaParams()
 
     def velocities(self, world) -> torch.Tensor:
         p, M = self.params, self.M
@@ -113,9 +113,9 @@ class SfmCrowd(ReactiveCrowd):
 
     name = "sfm"
 
-    def __init__(self, *args, params: SFMParams = SFMParams(), **kwargs):
+    def __init__(self, *args, params: SFMParams | None = None, **kwargs):
         super().__init__(*args, **kwargs)
-        self.params = params
+        self.params = params or SFMParams()
 
     def velocities(self, world) -> torch.Tensor:
         others = {}
