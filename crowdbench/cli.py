@@ -221,6 +221,22 @@ def make_probe(cfg):
     from crowdbench.data.scenes import check_scene
     from crowdbench.eval import evaluate
 
+    from crowdbench.envs.factory import env_name
+
+    if env_name(cfg.env) == "crowdnav":  # CrowdNav's validation cases (its own held-out set)
+        from crowdbench.envs.factory import sim_config
+        from crowdbench.eval_crowdnav import evaluate_crowdnav
+
+        sim = sim_config(cfg.env)
+        setting = f"{sim.scenario}_n{sim.n_humans}"
+
+        def probe_crowdnav(actor) -> dict[str, float]:
+            res = evaluate_crowdnav(LearnedPolicy(actor, frame=cfg.env.frame), sim, [setting],
+                                    cfg.train.probe_episodes, phase="val")["scenes"][setting]
+            return {f"probe_crowdnav_{setting}_success": res["success_rate"]["mean"],
+                    f"probe_crowdnav_{setting}_collision": res["collision_rate"]["mean"]}
+
+        return probe_crowdnav
     scene = check_scene(cfg.train.probe_scene)
 
     def probe(actor) -> dict[str, float]:

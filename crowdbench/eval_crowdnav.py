@@ -59,15 +59,17 @@ def future_view(world, cfg: CrowdNavConfig, episodes: dict[str, torch.Tensor]):
 
 
 def evaluate_crowdnav(policy: Policy, cfg: CrowdNavConfig, settings=None, episodes: int | None = None,
-                      out_dir: Path | None = None, save_episodes: bool = False, meta: dict | None = None) -> dict:
-    """Evaluate ``policy`` on CrowdNav's test cases of every setting (default: ``cfg``'s scenario and crowd size)."""
+                      out_dir: Path | None = None, save_episodes: bool = False, meta: dict | None = None,
+                      phase: str = "test") -> dict:
+    """Evaluate ``policy`` on CrowdNav's test cases of every setting (default: ``cfg``'s scenario and crowd size);
+    ``phase="val"``: its 100 validation cases instead (the training probe)."""
     settings = [f"{cfg.scenario}_n{cfg.n_humans}"] if not settings else [str(s) for s in settings]
     parsed = [parse_setting(s) for s in settings]
     privileged = getattr(policy, "privileged", False)
     if privileged and cfg.robot_visible:
         raise ValueError("the oracle knows the humans' future, which depends on a visible robot: "
                          "available with env.robot_visible=false only")
-    results = {"protocol": PROTOCOL, "policy": policy.name, "meta": meta or {}, "numerics": describe(),
+    results = {"protocol": PROTOCOL if phase == "test" else f"{PROTOCOL}-{phase}", "policy": policy.name, "meta": meta or {}, "numerics": describe(),
                "humans": cfg.humans, "robot_visible": cfg.robot_visible, "scenes": {}, "lists": {}}
     if privileged:
         results["privileged"] = True
@@ -75,7 +77,7 @@ def evaluate_crowdnav(policy: Policy, cfg: CrowdNavConfig, settings=None, episod
     for name, (scenario, n) in zip(settings, parsed, strict=True):
         c = replace(cfg, scenario=scenario, n_humans=n, frame=policy.frame)
         world, scen = crowdnav_world(c, 1)
-        full = scen.test_list()
+        full = scen.test_list(phase)
         results["lists"][name] = list_digest(full)
         keep = torch.tensor([e["episode"] for e in select_episodes({"episodes": [{"episode": i} for i in
                                                                                  range(len(full["case"]))]}, episodes)])

@@ -116,9 +116,10 @@ class CrowdNavScenario:
     def __init__(self, cfg: CrowdNavConfig):
         self.cfg, self.A = cfg, 1
 
-    def test_list(self, n: int = CROWDNAV.test_size) -> dict[str, torch.Tensor]:
-        """The fixed test list: episode ``i`` is CrowdNav's test case ``i`` (``case``)."""
-        return _episodes(case_list(self.cfg.scenario, self.cfg.n_humans, n, "test"))
+    def test_list(self, phase: str = "test") -> dict[str, torch.Tensor]:
+        """The fixed list of ``phase``: episode ``i`` is CrowdNav's case ``i`` (``case``); 500 test cases,
+        100 validation cases (``phase="val"``, what training probes)."""
+        return _episodes(case_list(self.cfg.scenario, self.cfg.n_humans, CROWDNAV.size(phase), phase))
 
     def cases(self, ids, phase: str = "test") -> dict[str, torch.Tensor]:
         return _episodes(_stack([crowdnav_case(int(i), self.cfg.scenario, self.cfg.n_humans, phase) for i in ids]))
