@@ -33,6 +33,7 @@ from tensordict import TensorDict
 from crowdbench.envs.policy import OBS, Policy
 
 _TWO_PI = 2.0 * math.pi
+PREF_RULES = ("reach", "crowdnav")
 
 
 def _mix32(h: np.ndarray) -> np.ndarray:
@@ -99,7 +100,9 @@ class ORCA(Policy):
       translations); actions are returned in the frame of the observation.
 
     The preferred velocity points at the goal at ``v_max``, slowed to ``dist / dt`` near
-    the goal so the robot does not overshoot it. Humans get their replayed velocity as both
+    the goal so the robot does not overshoot it (``pref_rule="reach"``); ``pref_rule="crowdnav"``
+    slows to ``dist`` m/s within ``v_max`` metres instead, as CrowdNav's ORCA (env=crowdnav uses it: it
+    arrives ~0.3 s later on average, CrowdNav's published times). Humans get their replayed velocity as both
     velocity and preferred velocity and ``maxNeighbors = 0``: their own new velocities are
     never read, so they need no neighbour search (this keeps ``do_step`` at about one
     k-d tree build plus the robot's linear program). Only humans flagged in ``humans_mask``
@@ -120,6 +123,7 @@ class ORCA(Policy):
         time_horizon: float = 2.0,
         time_horizon_obst: float = 5.0,
         perturb: float = 1e-3,
+        pref_rule: str = "reach",
         seed: int = 0,
         frame: str = "rotate",
     ):
@@ -133,6 +137,9 @@ class ORCA(Policy):
         self.neighbor_dist, self.max_neighbors = float(neighbor_dist), int(max_neighbors)
         self.time_horizon, self.time_horizon_obst = float(time_horizon), float(time_horizon_obst)
         self.perturb, self.seed = float(perturb), int(seed)
+        if pref_rule not in PREF_RULES:
+            raise ValueError(f"unknown orca.pref_rule {pref_rule!r}; valid: {', '.join(PREF_RULES)}")
+        self.pref_rule = pref_rule
         self.frame = frame
 
     def preferred_velocity(self, robot: np.ndarray) -> np.ndarray:
@@ -140,7 +147,8 @@ class ORCA(Policy):
         r = robot.astype(np.float64)
         to_goal = r[:, 4:6] - r[:, 0:2] if self.frame == "world" else r[:, 4:6]
         dist = np.linalg.norm(to_goal, axis=1, keepdims=True)
-        speed = np.minimum(dist / self.dt, self.v_max)
+        # reach: land on the goal in one step; crowdnav: min(dist, 1) m/s as CrowdNav's orca.py l.113-115
+        speed = np.minimum(dist / self.dt if self.pref_rule == "reach" else dist, self.v_max)
         pref = to_goal / np.maximum(dist, 1e-9) * speed
         if self.perturb > 0.0:
             ang = perturbation_angle(robot, self.seed)
