@@ -18,6 +18,8 @@ COMBOS = {  # scenario x crowd model: the env config overrides that select it
     "replay-v1": ["env=replay"],
     "selfplay-none": ["env=selfplay", "env.n_agents=3"],
     "selfplay-replay": ["env=selfplay", "env.n_agents=3", "env.background=students001"],
+    "selfplay-orca": ["env=selfplay", "env.n_agents=3", "env.n_humans=4"],
+    "selfplay-sfm": ["env=selfplay", "env.n_agents=2", "env.n_humans=3", "env.humans=sfm", "env.scenario=square"],
     "crowdnav-circle-orca": ["env=crowdnav"],
     "crowdnav-circle-orca-visible": ["env=crowdnav", "env.robot_visible=true"],
     "crowdnav-square-orca": ["env=crowdnav", "env.scenario=square", "env.n_humans=10"],

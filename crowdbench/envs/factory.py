@@ -53,7 +53,13 @@ def selfplay_world(cfg, batch: int):
     from crowdbench.envs.selfplay import SelfPlayScenario, background_scene
 
     scene = background_scene(cfg)
-    crowd = ReplayCrowd(scene, batch, cfg.time_limit) if scene is not None else NoCrowd(batch)
+    if cfg.n_humans:
+        from crowdbench.envs.humans.reactive import CROWDS
+
+        crowd = CROWDS[cfg.humans](batch, cfg.n_humans, cfg.human_radius, cfg.human_v_pref, cfg.dt,
+                                   robot_visible=cfg.robot_visible, robot_radius=cfg.robot_radius)
+    else:
+        crowd = ReplayCrowd(scene, batch, cfg.time_limit) if scene is not None else NoCrowd(batch)
     world = World(batch, cfg, crowd, n_agents=cfg.n_agents, interact=True, done_agents=cfg.done_agents)
     return world, SelfPlayScenario(cfg, scene)
 

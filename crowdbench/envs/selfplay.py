@@ -18,7 +18,7 @@ starting at a random time where no start point is within ``START_CLEARANCE`` of 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 
@@ -39,6 +39,10 @@ class SelfPlayConfig(SimConfig):
     min_spacing: float = 0.8  # m, square crossing: min distance between starts (and between goals), before jitter
     background: str = ""  # scene name of replayed ETH/UCY background humans; "" = none
     done_agents: str = "vanish"  # vanish | obstacle
+    n_humans: int = 0  # reactive humans placed by the scenario like extra agents (not with a background)
+    humans: str = "orca"  # their model: orca | sfm
+    robot_visible: bool = True  # whether they see (and avoid) the learning agents
+    human_v_pref: float = 1.0  # m/s
 
     def __post_init__(self):
         super().__post_init__()
@@ -60,6 +64,17 @@ class SelfPlayConfig(SimConfig):
                              "raise env.square_width")
         if self.min_spacing <= 2 * self.robot_radius:
             raise ValueError(f"min_spacing must exceed two robot radii ({2 * self.robot_radius} m)")
+        if self.n_humans < 0:
+            raise ValueError(f"env.n_humans must be >= 0, got {self.n_humans}")
+        if self.n_humans:
+            from crowdbench.envs.humans.reactive import CROWDS
+
+            if self.background:
+                raise ValueError("env.n_humans (reactive humans) and env.background (replayed humans) exclude "
+                                 "each other in self-play")
+            if self.humans not in CROWDS:
+                raise ValueError(f"unknown env.humans {self.humans!r}; valid: {', '.join(CROWDS)}")
+            replace(self, n_agents=self.n_agents + self.n_humans, n_humans=0)  # agents and humans must fit
 
 
 def sample_episodes(n: int, cfg: SelfPlayConfig, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
@@ -127,6 +142,13 @@ class SelfPlayScenario:
 
     def draw(self, n: int, gen: torch.Generator, tries: int = 50) -> dict[str, torch.Tensor]:
         """``n`` random episodes: ``start``, ``goal`` ``[n, A, 2]`` (world frame) and background start index ``t0``."""
+        A, H = self.A, self.cfg.n_humans
+        if H:  # the humans are placed as extra agents, at random places among them
+            start, goal = sample_episodes(n, replace(self.cfg, n_agents=A + H, n_humans=0), gen)
+            order = torch.rand(n, A + H, generator=gen).argsort(-1).unsqueeze(-1).expand(n, A + H, 2)
+            start, goal = start.gather(1, order), goal.gather(1, order)
+            return {"start": start[:, :A], "goal": goal[:, :A], "human_start": start[:, A:], "human_goal": goal[:, A:],
+                    "t0": torch.zeros(n, dtype=torch.long)}
         start, goal = sample_episodes(n, self.cfg, gen)
         start, goal = start + self.centre, goal + self.centre
         t0 = torch.zeros(n, dtype=torch.long)
