@@ -46,17 +46,28 @@ def far_lines(like: torch.Tensor) -> torch.Tensor:
     return torch.tensor(FAR_LINE, dtype=like.dtype)[:, None]
 
 
+def _step(x: torch.Tensor) -> torch.Tensor:
+    """``[x > 0]`` as 0/1 of ``x``'s dtype (exact; comparisons, bool tensors and ``where`` are
+    several times slower than float arithmetic on CPU, so the masks here are floats)."""
+    return x.sign().clamp_min(0.0)
+
+
+# Added to (or subtracted from) a candidate to drop it from a min (max): larger than any
+# intersection parameter (those are at most ~1e15 / RVO_EPSILON = 1e20, see FAR_LINE).
+_DROP = 1e30
+
+
 def _lp1(li, lj, radius, optx, opty, direction_opt: bool):
     """RVO2's ``linearProgram1`` for line ``i`` (``li``: ``[4, S]``) bounded by the earlier lines
     ``lj`` (``[J, 4, S]``).
 
-    Returns ``(ok, x, y)``: whether the line has a feasible segment inside the circle, and the
-    optimum on it (meaningless where not ``ok``).
+    Returns ``(ok, x, y)``: whether (1.0, else 0.0) the line has a feasible segment inside the
+    circle, and the optimum on it (meaningless where not ``ok``).
     """
     pxi, pyi, dxi, dyi = li.unbind(0)
     dot = pxi * dxi + pyi * dyi
     disc = dot * dot + radius * radius - (pxi * pxi + pyi * pyi)
-    ok = disc >= 0.0
+    ok = 1.0 - _step(-disc)  # disc >= 0
     sq = disc.clamp_min(0.0).sqrt()
     t_left = -dot - sq
     t_right = sq - dot
@@ -64,19 +75,30 @@ def _lp1(li, lj, radius, optx, opty, direction_opt: bool):
         pxj, pyj, dxj, dyj = lj.unbind(1)
         den = dxi * dyj - dyi * dxj
         num = dxj * (pyi - pyj) - dyj * (pxi - pxj)
-        par = den.abs() <= EPS
-        ok = ok & ~(par & (num < 0.0)).any(dim=0)
-        t = num / torch.where(par, 1.0, den)
-        inf = torch.tensor(float("inf"), dtype=t.dtype)
-        t_right = torch.minimum(t_right, torch.where(par | (den < 0.0), inf, t).amin(dim=0))
-        t_left = torch.maximum(t_left, torch.where(par | (den >= 0.0), -inf, t).amax(dim=0))
-        ok = ok & (t_left <= t_right)
+        par = 1.0 - _step(den.abs() - EPS)  # |den| <= EPS
+        # Parallel with the feasible side away from line i: no segment at all.
+        ok = ok * (1.0 - (par * _step(-num)).amax(dim=0))
+        t = num / (den + par * (1.0 - den))  # parallel: divide by ~1, the t is dropped
+        neg = _step(-den)  # den < 0: bounds t from the left, else from the right
+        t_right = torch.minimum(t_right, (t + torch.maximum(par, neg) * _DROP).amin(dim=0))
+        t_left = torch.maximum(t_left, (t - torch.maximum(par, 1.0 - neg) * _DROP).amax(dim=0))
+        ok = ok * (1.0 - _step(t_left - t_right))  # t_left <= t_right
     if direction_opt:
-        t = torch.where(optx * dxi + opty * dyi > 0.0, t_right, t_left)
+        t = torch.lerp(t_left, t_right, _step(optx * dxi + opty * dyi))
     else:
         t = dxi * (optx - pxi) + dyi * (opty - pyi)
         t = torch.minimum(torch.maximum(t, t_left), t_right)
     return ok, pxi + t * dxi, pyi + t * dyi
+
+
+def _rows(lines):
+    """``[L, 4, B]`` lines as contiguous ``[B, L * 4]`` rows: gathering problems is a row copy."""
+    return lines.permute(2, 0, 1).reshape(lines.shape[2], -1)
+
+
+def _gather(rows, idx, n: int):
+    """The first ``n`` lines of problems ``idx`` as ``[n, 4, S]``."""
+    return rows[:, : 4 * n].index_select(0, idx).reshape(-1, n, 4).permute(1, 2, 0).contiguous()
 
 
 def _violation(li, rx, ry):
@@ -93,16 +115,17 @@ def lp2_packed(lines, radius, optx, opty):
     n_lines = lines.shape[0]
     fail = torch.full(rx.shape, n_lines, dtype=torch.long)
     alive = torch.ones(rx.shape, dtype=torch.bool)
+    rows = _rows(lines)
     for i in range(n_lines):
         bad = (_violation(lines[i], rx, ry) > 0.0) & alive
         idx = bad.nonzero().squeeze(1)
         if idx.numel() == 0:
             continue
-        sub = lines[: i + 1].index_select(2, idx)
+        sub = _gather(rows, idx, i + 1)
         ok, nx, ny = _lp1(sub[i], sub[:i], radius[idx], optx[idx], opty[idx], False)
-        rx = rx.index_put((idx,), torch.where(ok, nx, rx[idx]))
-        ry = ry.index_put((idx,), torch.where(ok, ny, ry[idx]))
-        failed = idx[~ok]
+        rx = rx.index_put((idx,), torch.lerp(rx[idx], nx, ok))
+        ry = ry.index_put((idx,), torch.lerp(ry[idx], ny, ok))
+        failed = idx[ok == 0.0]
         alive[failed] = False
         fail[failed] = i
     return rx, ry, fail
@@ -113,17 +136,17 @@ def _lp2_direction_masked(lines, radius, optx, opty):
     under a mask (no compaction; for the small sets of ``linearProgram3``). Returns ``(rx, ry,
     ok)``, ``ok`` false where some line was infeasible."""
     rx, ry = optx * radius, opty * radius
-    alive = torch.ones(rx.shape, dtype=torch.bool)
+    alive = torch.ones_like(rx)
     for i in range(lines.shape[0]):
         li = lines[i]
-        bad = (_violation(li, rx, ry) > 0.0) & alive
+        bad = _step(_violation(li, rx, ry)) * alive
         if not bool(bad.any()):
             continue
         ok, nx, ny = _lp1(li, lines[:i], radius, optx, opty, True)
-        take = bad & ok
-        rx = torch.where(take, nx, rx)
-        ry = torch.where(take, ny, ry)
-        alive = alive & ~(bad & ~ok)
+        take = bad * ok
+        rx = torch.lerp(rx, nx, take)
+        ry = torch.lerp(ry, ny, take)
+        alive = alive - bad * (1.0 - ok)
     return rx, ry, alive
 
 
@@ -133,31 +156,33 @@ def lp3_packed(lines, begin, radius, rx, ry):
     distance = torch.zeros_like(rx)
     n_lines = lines.shape[0]
     start = int(begin.min()) if begin.numel() else n_lines
+    rows = _rows(lines)
     for i in range(start, n_lines):
         hit = (_violation(lines[i], rx, ry) > distance) & (begin <= i)
         idx = hit.nonzero().squeeze(1)
         if idx.numel() == 0:
             continue
-        sub = lines[: i + 1].index_select(2, idx)
+        sub = _gather(rows, idx, i + 1)
         li = sub[i]
         pxi, pyi, dxi, dyi = li.unbind(0)
         pxj, pyj, dxj, dyj = sub[:i].unbind(1)
         det = dxi * dyj - dyi * dxj
-        par = det.abs() <= EPS
+        par = 1.0 - _step(det.abs() - EPS)  # |det| <= EPS
         # Parallel lines pointing the same way add no bisector: RVO2 skips them.
-        skip = par & (dxi * dxj + dyi * dyj > 0.0)
-        s = (dxj * (pyi - pyj) - dyj * (pxi - pxj)) / torch.where(par, 1.0, det)
-        qx = torch.where(par, 0.5 * (pxi + pxj), pxi + s * dxi)
-        qy = torch.where(par, 0.5 * (pyi + pyj), pyi + s * dyi)
+        skip = par * _step(dxi * dxj + dyi * dyj)
+        s = (dxj * (pyi - pyj) - dyj * (pxi - pxj)) / (det + par * (1.0 - det))
+        qx = torch.lerp(pxi + s * dxi, 0.5 * (pxi + pxj), par)
+        qy = torch.lerp(pyi + s * dyi, 0.5 * (pyi + pyj), par)
         ex, ey = dxj - dxi, dyj - dyi
         norm = (ex * ex + ey * ey).sqrt()
-        inv = 1.0 / torch.where(norm > 0.0, norm, 1.0)
+        inv = 1.0 / (norm + (1.0 - _step(norm)))  # norm = 0 (same direction, skipped): 1 / 1
         bis = torch.stack([qx, qy, ex * inv, ey * inv], dim=1)
-        bis = torch.where(skip[:, None], far_lines(bis), bis)
+        keep = 1.0 - skip[:, None]
+        bis = bis * keep + far_lines(bis) * (1.0 - keep)  # finite, so exact
         nx, ny, okay = _lp2_direction_masked(bis, radius[idx], -dyi, dxi)
         # A failure is float round-off (the old result is feasible by construction): keep it.
-        nx = torch.where(okay, nx, rx[idx])
-        ny = torch.where(okay, ny, ry[idx])
+        nx = torch.lerp(rx[idx], nx, okay)
+        ny = torch.lerp(ry[idx], ny, okay)
         rx = rx.index_put((idx,), nx)
         ry = ry.index_put((idx,), ny)
         distance = distance.index_put((idx,), _violation(li, nx, ny))
@@ -189,6 +214,7 @@ def linear_program2(px, py, dx, dy, mask, radius, optx, opty, direction_opt: boo
     for i in range(n_lines):
         bad = (_violation(lines[i], rx, ry) > 0.0) & (fail == n_lines)
         ok, nx, ny = _lp1(lines[i], lines[:i], radius, optx, opty, True)
+        ok = ok > 0.0
         rx = torch.where(bad & ok, nx, rx)
         ry = torch.where(bad & ok, ny, ry)
         fail = torch.where(bad & ~ok, i, fail)
