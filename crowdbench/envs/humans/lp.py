@@ -93,7 +93,7 @@ def _lp1(li, lj, radius, optx, opty, direction_opt: bool):
 
 def _rows(lines):
     """``[L, 4, B]`` lines as contiguous ``[B, L * 4]`` rows: gathering problems is a row copy."""
-    return lines.permute(2, 0, 1).reshape(lines.shape[2], -1)
+    return lines.permute(2, 0, 1).contiguous().reshape(lines.shape[2], -1)
 
 
 def _gather(rows, idx, n: int):

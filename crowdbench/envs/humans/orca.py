@@ -49,7 +49,7 @@ from __future__ import annotations
 
 import torch
 
-from crowdbench.envs.humans.lp import far_lines, lp2_packed, lp3_packed
+from crowdbench.envs.humans.lp import _gather, _rows, far_lines, lp2_packed, lp3_packed
 
 # Internal precision (RVO2 computes in float32; see the module docstring).
 DTYPE = torch.float32
@@ -91,7 +91,7 @@ def orca_velocities(
     rx, ry, fail = lp2_packed(lines, speed, opt[0], opt[1])
     lp3 = (fail < m).nonzero().squeeze(1)
     if lp3.numel():
-        nx, ny = lp3_packed(lines.index_select(2, lp3), fail[lp3], speed[lp3], rx[lp3], ry[lp3])
+        nx, ny = lp3_packed(_gather(_rows(lines), lp3, m), fail[lp3], speed[lp3], rx[lp3], ry[lp3])
         rx = rx.index_put((lp3,), nx)
         ry = ry.index_put((lp3,), ny)
     new = torch.stack([rx, ry], dim=-1).reshape(n, k, 2).to(vel.dtype)
