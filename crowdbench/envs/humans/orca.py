@@ -35,10 +35,13 @@ Differences from RVO2 and why:
   ``linearProgram3`` over nearly (anti-)parallel lines, float32 bisector intersections lie
   ~1e4 m away and RVO2's result can leave the speed disc by far (seen: 22 m/s with
   ``max_speed`` 1 in a dense circle crossing); we land on the same point, a float64 solver did
-  not. Measured against pyrvo (benchmarks/bench_orca_model.py): see the numbers there; the
-  remaining disagreements (> 1e-3 m/s) are all in ``linearProgram3``, where nearly parallel
-  bisectors make a different operation order pick another point of (almost) the same largest
-  penetration. RVO_EPSILON (1e-5) is kept as the parallel test.
+  not. Measured against pyrvo on float32 inputs: benchmarks/bench_orca_model.py's 4 kinds x
+  1250 worlds, 37531/37531 agents within 1e-3 m/s (median difference 0, max 8e-4; float64:
+  99.93 %); CrowdNav circle crossing (time horizon 5, neighbour distance 10, 150 worlds x 6
+  rollout states), 100 % / 99.995 % / 99.97 % for 6 / 21 / 51 agents (float64: 99.98 /
+  99.96 / 99.85 %). The remaining disagreements are all in ``linearProgram3``, where nearly
+  parallel bisectors make a different operation order pick another point of (almost) the
+  same largest penetration. RVO_EPSILON (1e-5) is kept as the parallel test.
 - Neighbour ties (equal squared distances) are broken by agent index; RVO2 breaks them by
   its k-d tree's traversal order. This only matters for exactly equal distances.
 - Invalid (padding) agents are neither neighbours nor solved: their ``vel`` is returned as
