@@ -30,30 +30,51 @@ same for every agent.
 
 Differences from RVO2 and why:
 
-- Float64 throughout (RVO2 is float32), so that nothing is lost on float64 inputs and
-  round-off matters less in the near-degenerate steps. Measured against pyrvo on float32
-  inputs (benchmarks/bench_orca_model.py): median difference ~5e-8 m/s; about 0.1 % of
-  agents differ by more than 1e-3 m/s, all of them in ``linearProgram3`` (infeasible
-  half-planes) where nearly parallel bisectors make the float32 run pick another point of
-  (almost) the same largest penetration (equal to ~1e-4; RVO2's point sometimes leaves the
-  speed disc there, ours stays in it). RVO_EPSILON (1e-5) is kept as the parallel test.
+- Precision: float32 throughout, as RVO2 (float64 inputs are rounded; the result is
+  cast back to ``vel``'s dtype). This reproduces RVO2 more closely than float64 did: in
+  ``linearProgram3`` over nearly (anti-)parallel lines, float32 bisector intersections lie
+  ~1e4 m away and RVO2's result can leave the speed disc by far (seen: 22 m/s with
+  ``max_speed`` 1 in a dense circle crossing); we land on the same point, a float64 solver did
+  not. Measured against pyrvo on float32 inputs: benchmarks/bench_orca_model.py's 4 kinds x
+  1250 worlds, 37531/37531 agents within 1e-3 m/s (median difference 0, max 8e-4; float64:
+  99.93 %); CrowdNav circle crossing (time horizon 5, neighbour distance 10, 150 worlds x 6
+  rollout states), 100 % / 99.995 % / 99.97 % for 6 / 21 / 51 agents (float64: 99.98 /
+  99.96 / 99.85 %). The remaining disagreements are all in ``linearProgram3``, where nearly
+  parallel bisectors make a different operation order pick another point of (almost) the
+  same largest penetration. RVO_EPSILON (1e-5) is kept as the parallel test.
 - Neighbour ties (equal squared distances) are broken by agent index; RVO2 breaks them by
   its k-d tree's traversal order. This only matters for exactly equal distances.
 - Invalid (padding) agents are neither neighbours nor solved: their ``vel`` is returned as
   given.
+
+Speed (N = 1024 worlds, CrowdNav parameters, one thread, machine load ~5 on 2 cores, same
+process A/B): 6 / 21 / 51 agents 18 / 126 / 343 ms per call, was 24 / 202 / 683 ms in float64.
+What helped: float32; line-major ``[M, 4, B]`` packing (every elementwise op runs over a long
+contiguous dimension) with far-away lines for absent neighbours (no masks in the LPs);
+float 0/1 masks and ``lerp`` instead of bool masks and ``torch.where`` in the LPs (bool
+comparisons and ``where`` are ~5x slower than float arithmetic in this torch build);
+problems gathered as rows of a contiguous copy. What did not: chunking worlds (no cache
+gain), float masks in the half-plane and neighbour-key code (more passes, slower),
+``torch.compile`` of a mask-based whole solve (190 s cold compile, slower than eager) or of
+``linearProgram1`` alone (25 s, ~10 % faster): not shipped. Half of the time is the
+half-planes (``topk`` over the ``[N, K, K]`` keys alone ~13 ms at K = 21), the rest the
+``linearProgram3`` line loops, which are bound by the number of small ops.
 """
 
 from __future__ import annotations
 
 import torch
 
-from crowdbench.envs.humans.lp import linear_program2, linear_program3
+from crowdbench.envs.humans.lp import _gather, _rows, far_lines, lp2_packed, lp3_packed
+
+# Internal precision (RVO2 computes in float32; see the module docstring).
+DTYPE = torch.float32
 
 
 def _per_agent(x, valid: torch.Tensor) -> torch.Tensor:
     if isinstance(x, torch.Tensor):
-        return x.to(torch.float64).expand(valid.shape)
-    return torch.full(valid.shape, float(x), dtype=torch.float64)
+        return x.to(DTYPE).expand(valid.shape)
+    return torch.full(valid.shape, float(x), dtype=DTYPE)
 
 
 def orca_velocities(
@@ -76,18 +97,17 @@ def orca_velocities(
     dtype; invalid agents keep ``vel``.
     """
     n, k = valid.shape
-    lines = orca_lines(
+    lines, _ = packed_lines(
         pos, vel, valid, radius, time_horizon=time_horizon, dt=dt, neighbor_dist=neighbor_dist,
         max_neighbors=max_neighbors,
     )  # fmt: skip
-    m = lines[0].shape[1]
+    m = lines.shape[0]
     speed = _per_agent(max_speed, valid).reshape(-1)
-    optx, opty = pref[..., 0].to(torch.float64).reshape(-1), pref[..., 1].to(torch.float64).reshape(-1)
-    rx, ry, fail = linear_program2(*lines, speed, optx, opty, False)
+    opt = pref.to(DTYPE).reshape(-1, 2).T
+    rx, ry, fail = lp2_packed(lines, speed, opt[0], opt[1])
     lp3 = (fail < m).nonzero().squeeze(1)
     if lp3.numel():
-        sub = [x[lp3] for x in lines]
-        nx, ny = linear_program3(*sub, fail[lp3], speed[lp3], rx[lp3], ry[lp3])
+        nx, ny = lp3_packed(_gather(_rows(lines), lp3, m), fail[lp3], speed[lp3], rx[lp3], ry[lp3])
         rx = rx.index_put((lp3,), nx)
         ry = ry.index_put((lp3,), ny)
     new = torch.stack([rx, ry], dim=-1).reshape(n, k, 2).to(vel.dtype)
@@ -97,74 +117,96 @@ def orca_velocities(
 def orca_lines(pos, vel, valid, radius, *, time_horizon, dt, neighbor_dist, max_neighbors):
     """Every agent's ORCA half-planes, nearest neighbour first, as five ``[N * K, M]`` tensors
     ``(point_x, point_y, direction_x, direction_y, exists)`` with ``M = min(max_neighbors,
-    K - 1)``; velocity ``v`` satisfies a line when ``det(direction, point - v) <= 0``."""
+    K - 1)``; velocity ``v`` satisfies a line when ``det(direction, point - v) <= 0``. Absent
+    neighbours come last and hold :data:`crowdbench.envs.humans.lp.FAR_LINE`."""
+    lines, exists = packed_lines(
+        pos, vel, valid, radius, time_horizon=time_horizon, dt=dt, neighbor_dist=neighbor_dist,
+        max_neighbors=max_neighbors,
+    )  # fmt: skip
+    return (*lines.permute(1, 2, 0), exists.T)
+
+
+def packed_lines(pos, vel, valid, radius, *, time_horizon, dt, neighbor_dist, max_neighbors):
+    """:func:`orca_lines` packed line-major (as :mod:`crowdbench.envs.humans.lp` takes them):
+    ``([M, 4, N * K] lines, [M, N * K] exists)``."""
     n, k = valid.shape
-    f64 = torch.float64
-    px, py = pos[..., 0].to(f64), pos[..., 1].to(f64)
-    vx, vy = vel[..., 0].to(f64), vel[..., 1].to(f64)
-    rad = _per_agent(radius, valid)
+    b = n * k
     m = max(min(int(max_neighbors), k - 1), 0)
     if m == 0:
-        empty = torch.zeros(n * k, 0, dtype=f64)
-        return empty, empty, empty, empty, torch.zeros(n * k, 0, dtype=torch.bool)
+        return torch.zeros(0, 4, b, dtype=DTYPE), torch.zeros(0, b, dtype=torch.bool)
+    pos, vel = pos.to(DTYPE), vel.to(DTYPE)
+    rad = _per_agent(radius, valid)
+    # [5, N * K]: x, y, vx, vy, radius of every agent; one gather fetches all of a neighbour.
+    agents = torch.cat([pos.reshape(b, 2).T, vel.reshape(b, 2).T, rad.reshape(1, b)])
 
     # computeNeighbors: the m nearest valid others strictly within neighbor_dist.
+    px, py = pos[..., 0], pos[..., 1]
     relx = px[:, None, :] - px[:, :, None]  # [n, a, b] = p_b - p_a
     rely = py[:, None, :] - py[:, :, None]
     d2 = relx * relx + rely * rely
-    eye = torch.eye(k, dtype=torch.bool)
-    ok = valid[:, :, None] & valid[:, None, :] & ~eye & (d2 < float(neighbor_dist) ** 2)
-    key = torch.where(ok, d2, float("inf"))
-    # Stable sort: ties go to the lower index (RVO2: k-d tree order, see docstring).
-    key, order = key.sort(dim=2, stable=True)
-    key, order = key[..., :m], order[..., :m]
-    exists = torch.isfinite(key).reshape(n * k, m)
-    relx = relx.gather(2, order).reshape(n * k, m)
-    rely = rely.gather(2, order).reshape(n * k, m)
-    flat = order.reshape(n, k * m)
-    ovx = vx.gather(1, flat).reshape(n * k, m)
-    ovy = vy.gather(1, flat).reshape(n * k, m)
-    orad = rad.gather(1, flat).reshape(n * k, m)
-    ax, ay = vx.reshape(-1, 1), vy.reshape(-1, 1)
-    dist_sq = relx * relx + rely * rely
-    lx, ly, ldx, ldy = _orca_lines(
-        relx, rely, ax - ovx, ay - ovy, dist_sq, rad.reshape(-1, 1) + orad, ax, ay,
+    ok = valid[:, :, None] & valid[:, None, :] & (d2 < float(neighbor_dist) ** 2)
+    ok.diagonal(dim1=1, dim2=2).fill_(False)
+    key, order = _neighbor_key(d2, ok).topk(m, dim=2, largest=False, sorted=True)
+    exists = (key < _NO_KEY).reshape(b, m).T
+    # Line-major [m, N * K] global neighbour indices.
+    order = (order + (torch.arange(n) * k)[:, None, None]).reshape(b, m).T
+    nb = agents.index_select(1, order.reshape(-1)).reshape(5, m, b)
+    ax, ay = agents[2], agents[3]
+    lines = _orca_lines(
+        nb[0] - agents[0], nb[1] - agents[1], ax - nb[2], ay - nb[3], agents[4] + nb[4], ax, ay,
         1.0 / float(time_horizon), 1.0 / float(dt),
     )  # fmt: skip
-    return lx, ly, ldx, ldy, exists
+    return torch.where(exists[:, None], lines, far_lines(lines)), exists
 
 
-def _orca_lines(relx, rely, rvx, rvy, dist_sq, comb_r, vx, vy, inv_tau: float, inv_dt: float):
-    """ORCA half-planes (point x/y, unit direction x/y), all ``[B, M]``, as in
+_NO_KEY = torch.iinfo(torch.int64).max
+
+
+def _neighbor_key(d2: torch.Tensor, ok: torch.Tensor) -> torch.Tensor:
+    """Distinct int64 sort keys ordered by ``d2`` then by neighbour index (RVO2's insertion
+    sort keeps the first-found of equal distances first; we break ties by index), so that a
+    (non-stable) ``topk`` is deterministic. Non-neighbours get :data:`_NO_KEY`."""
+    k = d2.shape[-1]
+    # d2 >= 0, so its float32 bit pattern is monotone in it (float64 distances are rounded to
+    # float32 for the order: ties at float32 resolution go by index).
+    bits = d2.to(torch.float32).view(torch.int32).to(torch.int64)
+    key = bits * k + torch.arange(k)
+    return key.masked_fill(~ok, _NO_KEY)
+
+
+def _orca_lines(relx, rely, rvx, rvy, comb_r, vx, vy, inv_tau: float, inv_dt: float):
+    """ORCA half-planes as ``[M, 4, B]`` (point x/y, unit direction x/y), as in
     ``Agent::computeNewVelocity``. Rows of absent neighbours hold garbage (masked later)."""
     # Selections are torch.lerp with 0/1 weights (exact, and several times cheaper than
     # torch.where on CPU); both branches are finite for every existing neighbour.
-    collide = (dist_sq <= comb_r * comb_r).to(relx.dtype)
+    dist_sq = relx * relx + rely * rely
+    r_sq = comb_r * comb_r
+    collide = (dist_sq <= r_sq).to(relx.dtype)
     # Overlapping discs use the cut-off circle of the step instead of the horizon: one w for both.
     inv_t = inv_tau + (inv_dt - inv_tau) * collide
     wx, wy = rvx - inv_t * relx, rvy - inv_t * rely
     w_sq = wx * wx + wy * wy
     dot1 = wx * relx + wy * rely
-    r_sq = comb_r * comb_r
     on_cutoff = (dot1 < 0.0) & (dot1 * dot1 > r_sq * w_sq)
     circle = torch.maximum(collide, on_cutoff.to(relx.dtype))
 
     # Projection on the (cut-off or collision) circle.
-    w_len = w_sq.sqrt()
+    tiny = torch.finfo(relx.dtype).tiny
+    inv_w = w_sq.clamp_min(tiny).rsqrt()
     # w = 0 (only on a leg, never on a circle) would poison the unused branch with NaN.
-    inv_w = 1.0 / w_len.clamp_min(1e-300)
     ux, uy = wx * inv_w, wy * inv_w
-    c_scale = comb_r * inv_t - w_len
+    c_scale = comb_r * inv_t - w_sq * inv_w
 
     # Projection on a leg: left leg if w is left of P, else the right one (sign -1 mirrors it).
     leg = (dist_sq - r_sq).clamp_min(0.0).sqrt()
     sleg = leg * ((relx * wy - rely * wx > 0.0).to(relx.dtype) * 2.0 - 1.0)
-    ldx = (relx * sleg - rely * comb_r) / dist_sq
-    ldy = (rely * sleg + relx * comb_r) / dist_sq
+    inv_d = 1.0 / dist_sq.clamp_min(tiny)
+    ldx = (relx * sleg - rely * comb_r) * inv_d
+    ldy = (rely * sleg + relx * comb_r) * inv_d
     proj = rvx * ldx + rvy * ldy
 
     dx = torch.lerp(ldx, uy, circle)
     dy = torch.lerp(ldy, -ux, circle)
     ux = torch.lerp(proj * ldx - rvx, c_scale * ux, circle)
     uy = torch.lerp(proj * ldy - rvy, c_scale * uy, circle)
-    return vx + 0.5 * ux, vy + 0.5 * uy, dx, dy
+    return torch.stack([vx + 0.5 * ux, vy + 0.5 * uy, dx, dy], dim=1)
