@@ -1,0 +1,161 @@
+"""The evaluation half of the ``crowdbench`` command line: policies, output directories, the
+per-protocol evaluation runs (replay v1, self-play, CrowdNav) and the training probe."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from crowdbench import policies
+from crowdbench.envs.core import SimConfig
+
+
+class UsageError(Exception):
+    """Bad input from the user: printed as one line, exit code 2."""
+
+
+def make_policy(name: str, cfg):
+    """``policy=NAME``: the registry builds it (crowdbench/policies.py) with this config's env and seed."""
+    try:
+        return policies.build(name, cfg)
+    except policies.PolicyError as e:
+        raise UsageError(str(e)) from None
+
+
+def output_dir(cfg, command: str, name: str) -> Path:
+    if cfg.out:
+        return Path(cfg.out)
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    return Path("outputs") / f"{command}-{Path(name).stem}-{stamp}"
+
+
+def eval_options(cfg) -> tuple[list[str], int | None]:
+    from crowdbench.data.scenes import check_scene
+
+    scenes = list(cfg.eval.scenes) if not isinstance(cfg.eval.scenes, str) else [cfg.eval.scenes]
+    try:
+        scenes = [check_scene(s) for s in scenes]
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+    episodes = cfg.eval.episodes
+    if episodes is not None and (not isinstance(episodes, int) or episodes < 1):
+        raise UsageError(f"eval.episodes must be a positive integer or null, got {episodes!r}")
+    return scenes, episodes
+
+
+def run_eval(policy, cfg, out: Path, overrides: list[str]) -> dict:
+    from crowdbench.eval import evaluate, format_table
+
+    scenes, episodes = eval_options(cfg)
+    sim = SimConfig.fields_of(cfg.env)
+    sim["frame"] = policy.frame
+    recorders = recorder_factory(policy, cfg, out, scenes)
+    results = evaluate(policy, scenes, episodes, out_dir=out, save_episodes=bool(cfg.eval.save_episodes),
+                       sim_overrides=sim, meta={"seed": cfg.seed, "overrides": overrides},
+                       recorder_factory=recorders)
+    print(format_table(results))
+    print(f"results written to {out / 'results.json'}")
+    return results
+
+
+def recorder_factory(policy, cfg, out: Path, scenes: list[str]):
+    """``viz.record=true``: rerun recordings of ``viz.episodes`` (crowdbench/viz/record.py); else ``None``
+    (the viz package, and rerun, are then never imported)."""
+    if not cfg.viz.record:
+        return None
+    from crowdbench.viz.record import make_recorder_factory
+
+    try:
+        return make_recorder_factory(policy, cfg, out, scenes)
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+
+
+def check_viz(cfg) -> None:
+    """Reject bad ``viz.*`` values before anything runs (a training run must not fail at its end)."""
+    if cfg.viz.record:
+        from crowdbench.viz.record import recorded_episodes
+
+        try:
+            recorded_episodes(cfg, eval_options(cfg)[0])
+        except ValueError as e:
+            raise UsageError(str(e)) from None
+
+
+def check_protocol_fixed(cfg) -> None:
+    """The protocol fixes dt, time limit, time base and start radius; refuse an override of them."""
+    from crowdbench.envs.protocol import ProtocolSpec
+
+    spec, env = ProtocolSpec(), SimConfig.fields_of(cfg.env)
+    for key in ("dt", "time_limit", "time_base", "start_radius"):
+        if str(env[key]) != str(getattr(spec, key)):
+            raise UsageError(f"env.{key}={env[key]} conflicts with protocol {spec.version} ({getattr(spec, key)}); "
+                             "evaluation always uses the protocol's value")
+
+
+def run_selfplay_eval(policy, cfg, out: Path, overrides: list[str]) -> dict:
+    """``env=selfplay``: every agent acts from ``policy`` on the seeded self-play set (docs/selfplay.md)."""
+    from crowdbench.envs.factory import selfplay_config
+    from crowdbench.eval_selfplay import evaluate_selfplay, format_table
+
+    e = cfg.env
+    try:
+        sim = selfplay_config(e, frame=policy.frame)
+        results = evaluate_selfplay(policy, sim, list(e.eval_scenarios),
+                                    None if e.eval_n_agents is None else list(e.eval_n_agents), int(e.eval_episodes),
+                                    int(e.eval_seed), out_dir=out, meta={"seed": cfg.seed, "overrides": overrides})
+    except ValueError as err:
+        raise UsageError(str(err)) from None
+    print(format_table(results))
+    print(f"results written to {out / 'results.json'}")
+    return results
+
+
+def run_crowdnav_eval(policy, cfg, out: Path, overrides: list[str]) -> dict:
+    """``env=crowdnav``: CrowdNav's test cases of every ``env.eval_settings`` (docs/crowdnav.md)."""
+    from crowdbench.envs.factory import sim_config
+    from crowdbench.eval import format_table
+    from crowdbench.eval_crowdnav import evaluate_crowdnav
+
+    e = cfg.env
+    try:
+        results = evaluate_crowdnav(policy, sim_config(e), None if e.eval_settings is None else list(e.eval_settings),
+                                    e.eval_episodes, out_dir=out, save_episodes=bool(cfg.eval.save_episodes),
+                                    meta={"seed": cfg.seed, "overrides": overrides})
+    except ValueError as err:
+        raise UsageError(str(err)) from None
+    print(format_table(results))
+    print(f"results written to {out / 'results.json'}")
+    return results
+
+
+def make_probe(cfg):
+    """Held-out check during training: success on ``probe_episodes`` of ``probe_scene``'s protocol list."""
+    from crowdbench.algos.checkpoint import LearnedPolicy
+    from crowdbench.data.scenes import check_scene
+    from crowdbench.envs.factory import env_name
+    from crowdbench.eval import evaluate
+
+    if env_name(cfg.env) == "crowdnav":  # CrowdNav's validation cases (its own held-out set)
+        from crowdbench.envs.factory import sim_config
+        from crowdbench.eval_crowdnav import evaluate_crowdnav
+
+        sim = sim_config(cfg.env)
+        setting = f"{sim.scenario}_n{sim.n_humans}"
+
+        def probe_crowdnav(actor) -> dict[str, float]:
+            res = evaluate_crowdnav(LearnedPolicy(actor, frame=cfg.env.frame), sim, [setting],
+                                    cfg.train.probe_episodes, phase="val")["scenes"][setting]
+            return {f"probe_crowdnav_{setting}_success": res["success_rate"]["mean"],
+                    f"probe_crowdnav_{setting}_collision": res["collision_rate"]["mean"]}
+
+        return probe_crowdnav
+    scene = check_scene(cfg.train.probe_scene)
+
+    def probe(actor) -> dict[str, float]:
+        res = evaluate(LearnedPolicy(actor, frame=cfg.env.frame), [scene], cfg.train.probe_episodes,
+                       sim_overrides=SimConfig.fields_of(cfg.env))["scenes"][scene]
+        return {f"probe_{scene}_success": res["success_rate"]["mean"],
+                f"probe_{scene}_collision": res["collision_rate"]["mean"]}
+
+    return probe
