@@ -12,10 +12,8 @@ import time
 import torch
 
 from crowdbench.data.scenes import Scene, load_scene
-from crowdbench.envs.core import CrowdSim
-from crowdbench.envs.pettingzoo_env import CrowdParallelEnv
+from crowdbench.envs.factory import replay_env, replay_parallel_env, replay_world
 from crowdbench.envs.protocol import TrainSampler
-from crowdbench.envs.torchrl_env import CrowdEnv
 
 
 def timed(fn, seconds: float) -> tuple[int, float]:
@@ -31,24 +29,25 @@ def timed(fn, seconds: float) -> tuple[int, float]:
 
 
 def core_rate(scene: Scene, batch: int, seconds: float) -> float:
-    sim = CrowdSim(scene, batch)
-    sampler = TrainSampler(sim.last_start, 0)
-    sim.reset(torch.ones(batch, dtype=torch.bool), *sampler(batch))
+    world, scenario = replay_world(scene, batch)
+    sampler = TrainSampler(scenario.last_start, 0)  # (t0, angle) draws, no start check: as before the world API
+    world.reset(torch.ones(batch, dtype=torch.bool), scenario.episodes(*sampler(batch)))
     action = torch.full((batch, 1, 2), 0.7)
 
     def step():
-        sim.observe()
-        sim.step(action)
-        done = (sim.outcome != 0).any(-1)
+        world.observe()
+        world.step(action)
+        done = (world.outcome != 0).any(-1)
         if done.any():  # partial reset by mask, as the TorchRL env does
-            sim.reset(done, *sampler(batch))
+            t0, angle = sampler(batch)  # full-batch draws, masked: the same episode stream as before
+            world.reset(done, scenario.episodes(t0[done], angle[done]))
 
     n, dt = timed(step, seconds)
     return n * batch / dt
 
 
 def torchrl_rate(batch: int, seconds: float) -> float:
-    env = CrowdEnv("students001", batch, seed=0)
+    env = replay_env("students001", batch, seed=0)
     td = env.reset()
     td["agents", "action"] = torch.full((batch, 1, 2), 0.7)
     state = {"td": td}
@@ -63,7 +62,7 @@ def torchrl_rate(batch: int, seconds: float) -> float:
 
 
 def pettingzoo_rate(seconds: float) -> float:
-    env = CrowdParallelEnv("students001")
+    env = replay_parallel_env("students001")
     env.reset(seed=0)
     act = {"robot_0": torch.tensor([0.7, 0.7]).numpy()}
 

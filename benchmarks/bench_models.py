@@ -32,8 +32,7 @@ import torch
 import yaml
 
 from crowdbench.baselines.straight import StraightToGoal
-from crowdbench.data.scenes import load_scene
-from crowdbench.envs.core import CrowdSim
+from crowdbench.envs.factory import replay_world
 from crowdbench.envs.policy import obs_tensordict
 from crowdbench.models import make_encoder
 from crowdbench.models.graph import build_graph, cap_binding
@@ -73,10 +72,10 @@ def cpu_busy() -> tuple[float, float]:
 def rollout_obs(scene: str, b: int, steps: int, seed: int = 0):
     """Observations ``steps`` steps into ``b`` straight-to-goal episodes (random starts)."""
     g = torch.Generator().manual_seed(seed)
-    sim = CrowdSim(load_scene(scene), b)
-    t0 = torch.randint(0, sim.last_start + 1, (b,), generator=g)
+    sim, scenario = replay_world(scene, b)
+    t0 = torch.randint(0, scenario.last_start + 1, (b,), generator=g)
     ang = torch.rand(b, generator=g) * 2 * torch.pi
-    sim.reset(torch.ones(b, dtype=torch.bool), t0, ang)
+    sim.reset(torch.ones(b, dtype=torch.bool), scenario.episodes(t0, ang))
     pol = StraightToGoal()
     for _ in range(steps):
         sim.step(pol.act(obs_tensordict(sim.observe(), b)))

@@ -4,7 +4,7 @@ Usage: python benchmarks/bench_selfplay.py [--threads 2] [--seconds 3] [--batch 
 
 An env-step advances one environment (all its n agents) by one step; agent-steps = env-steps x n.
 Every figure includes one ``observe`` per ``step`` (each agent's view of the other agents and
-the background); "TorchRL" is :class:`SelfPlayEnv` through ``step_and_maybe_reset`` (partial
+the background); "TorchRL" is the self-play :class:`CrowdEnv` (``selfplay_env``) through ``step_and_maybe_reset`` (partial
 resets included); "+ actor" adds the shared-weight MP-GatedGCN (D = 32) deciding for every agent.
 """
 
@@ -16,8 +16,8 @@ import time
 import torch
 
 from crowdbench.algos.builders import build_actor
-from crowdbench.envs.selfplay import EpisodeSampler, SelfPlayConfig, SelfPlaySim
-from crowdbench.envs.selfplay_env import SelfPlayEnv
+from crowdbench.envs.factory import selfplay_env, selfplay_world
+from crowdbench.envs.selfplay import SelfPlayConfig
 
 
 def timed(fn, seconds: float) -> tuple[int, float]:
@@ -31,27 +31,24 @@ def timed(fn, seconds: float) -> tuple[int, float]:
 
 
 def core_rate(cfg: SelfPlayConfig, batch: int, seconds: float) -> float:
-    sim = SelfPlaySim(batch, cfg)
-    sampler = EpisodeSampler(sim, 0)
-    everyone = torch.ones(batch, dtype=torch.bool)
-    sim.reset(everyone, *sampler(batch))
+    world, scenario = selfplay_world(cfg, batch)
+    sampler = scenario.sampler(0)
+    world.reset(torch.ones(batch, dtype=torch.bool), sampler(batch))
     action = torch.full((batch, cfg.n_agents, 2), 0.7)
 
     def step():
-        sim.observe()
-        sim.step(action)
-        done = (sim.outcome != 0).all(-1)
+        world.observe()
+        world.step(action)
+        done = (world.outcome != 0).all(-1)
         if done.any():
-            start, goal, t0 = sim.start.clone(), sim.goal.clone(), sim.t.clone()
-            start[done], goal[done], t0[done] = sampler(int(done.sum()))
-            sim.reset(done, start, goal, t0)
+            world.reset(done, sampler(int(done.sum())))
 
     n, dt = timed(step, seconds)
     return n * batch / dt
 
 
 def torchrl_rate(cfg: SelfPlayConfig, batch: int, seconds: float, actor=None) -> float:
-    env = SelfPlayEnv(batch, cfg, seed=0)
+    env = selfplay_env(batch, cfg, seed=0)
     state = {"td": env.reset()}
     fixed = torch.full((batch, cfg.n_agents, 2), 0.7)
 
@@ -84,7 +81,7 @@ def main() -> None:
         for bg in ("", "students001"):
             cfg = SelfPlayConfig(n_agents=n, background=bg)
             rows = [("batched core (observe + step)", core_rate(cfg, B, args.seconds)),
-                    ("TorchRL SelfPlayEnv", torchrl_rate(cfg, B, args.seconds))]
+                    ("TorchRL CrowdEnv (self-play)", torchrl_rate(cfg, B, args.seconds))]
             if not bg:
                 rows.append(("TorchRL + shared gatedgcn (D=32) actor", torchrl_rate(cfg, B, args.seconds, actor)))
             for name, r in rows:

@@ -20,7 +20,7 @@ from crowdbench.algos.builders import build_actor, build_critic, build_loss
 from crowdbench.algos.checkpoint import load_checkpoint
 from crowdbench.baselines.straight import StraightToGoal
 from crowdbench.envs.core import COLLISION
-from crowdbench.envs.torchrl_env import CrowdEnv
+from crowdbench.envs.factory import replay_env
 from crowdbench.models.heads import prepare_batch
 
 NEVER = 10**6
@@ -38,7 +38,7 @@ def main(path: str, batch: int = 512, steps: int = 30) -> None:
     params = loss.qvalue_network_params[0] if hasattr(loss, "qvalue_network_params") else loss.value_network_params
     net = loss.qvalue_network if hasattr(loss, "qvalue_network") else loss.value_network
 
-    env = CrowdEnv("students001", batch, seed=7)
+    env = replay_env("students001", batch, seed=7)
     pol = StraightToGoal()
     td = env.reset()
     obs, first = [], torch.full((batch,), NEVER)
