@@ -49,6 +49,10 @@ def run_eval(policy, cfg, out: Path, overrides: list[str]) -> dict:
     scenes, episodes = eval_options(cfg)
     sim = SimConfig.fields_of(cfg.env)
     sim["frame"] = policy.frame
+    try:
+        SimConfig(**sim)  # bad env values are one-line errors before anything runs
+    except ValueError as e:
+        raise UsageError(str(e)) from None
     recorders = recorder_factory(policy, cfg, out, scenes)
     results = evaluate(policy, scenes, episodes, out_dir=out, save_episodes=bool(cfg.eval.save_episodes),
                        sim_overrides=sim, meta={"seed": cfg.seed, "overrides": overrides},

@@ -176,8 +176,10 @@ def test_timeout_truncates():
 def test_nan_action_raises():
     env = replay_parallel_env()
     env.reset(seed=0)
-    with pytest.raises(ValueError, match="robot_0.*NaN"):
+    with pytest.raises(ValueError, match="robot_0.*not finite"):
         env.step({AGENT: np.array([np.nan, 0.0], np.float32)})
+    with pytest.raises(ValueError, match="robot_0.*not finite"):
+        env.step({AGENT: np.array([np.inf, np.inf], np.float32)})
     env.step({AGENT: np.zeros(2, np.float32)})  # the env is still usable
 
 

@@ -62,6 +62,9 @@ def test_nan_action_raises():
     td["agents", "action"] = torch.full((1, 1, 2), math.nan)
     with pytest.raises(ValueError, match="NaN"):
         env.step(td)
+    td["agents", "action"] = torch.full((1, 1, 2), math.inf)  # would be NaN after the frame rotation
+    with pytest.raises(ValueError, match="inf"):
+        env.step(td)
 
 
 def test_progress_reward_pays_per_metre_towards_the_goal():

@@ -119,3 +119,46 @@ def test_crowdnav_reward_is_crowdnavs():
     timeout = torch.tensor([False, True, False, False])
     r = step_reward(cfg, end, swept, success, collision, timeout, torch.ones(4, dtype=torch.bool))
     assert r.tolist() == pytest.approx([(0.1 - 0.2) * 0.5 * 0.25, 0.0, 1.0, -0.25])
+
+
+def test_bad_settings_seeds_and_options_are_one_line_errors():
+    from crowdbench.envs.core import SimConfig
+    from crowdbench.envs.factory import replay_env, replay_parallel_env
+
+    for key, value in (("v_max", -1.0), ("dt", 0.0), ("robot_radius", float("nan")), ("human_radius", -0.1),
+                       ("sensing_range", 0.0), ("time_limit", 0)):
+        with pytest.raises(ValueError, match=f"env.{key} must be"):
+            SimConfig(**{key: value})
+    with pytest.raises(ValueError, match="batch"):
+        replay_env("hotel", 0)
+    pz = replay_parallel_env("hotel")
+    obs_a, _ = pz.reset(seed=np.int64(3))  # numpy integers are seeds too
+    obs_b, _ = pz.reset(seed=3)
+    assert all(np.array_equal(obs_a["robot_0"][k], obs_b["robot_0"][k]) for k in obs_a["robot_0"])
+    for bad in (2**64, -1, 1.5, "3"):
+        with pytest.raises(ValueError, match="seed must be an integer"):
+            pz.reset(seed=bad)
+    with pytest.raises(ValueError, match="angle"):
+        pz.reset(options={"angle": float("nan")})
+    sp = make_parallel_env(compose(["env=selfplay", "env.n_agents=2"]).env)
+    with pytest.raises(ValueError, match="start"):
+        sp.reset(options={"start": [[float("inf"), 0.0], [1.0, 0.0]]})
+
+
+def test_one_agents_inf_action_is_refused_before_it_reaches_the_others():
+    env = make_env(compose(["env=selfplay", "env.n_agents=3", "env.batch=2"]))
+    td = env.reset()
+    td["agents", "action"] = torch.zeros(2, 3, 2)
+    td["agents", "action"][0, 1] = torch.tensor([float("inf"), 0.0])
+    with pytest.raises(ValueError, match="inf"):
+        env.step(td)
+    assert torch.isfinite(env.world.pos).all()  # nothing moved
+
+
+@pytest.mark.parametrize("args", [["env.v_max=-1"], ["env=crowdnav", "env.time_limit=0"], ["env=selfplay", "env.dt=0"]])
+def test_bad_env_values_fail_the_cli_in_one_line(args, tmp_path, capsys):
+    from crowdbench.cli import main
+
+    assert main(["eval", "policy=straight", *args, f"out={tmp_path}"]) == 2
+    err = capsys.readouterr().err
+    assert "env." in err and err.count("\n") == 1

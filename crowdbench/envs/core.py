@@ -9,6 +9,7 @@ Geometry (SPEC section 3):
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass, field, fields
 
 import torch
@@ -52,6 +53,21 @@ class SimConfig:
             raise ValueError(f"unknown frame {self.frame!r}; valid: rotate, translate, world")
         if self.reward not in REWARDS:
             raise ValueError(f"unknown env.reward {self.reward!r}; valid: {', '.join(REWARDS)}")
+        for key in ("dt", "v_max", "robot_radius", "sensing_range"):
+            if not float(getattr(self, key)) > 0:  # also rejects NaN
+                raise ValueError(f"env.{key} must be > 0, got {getattr(self, key)!r}")
+        for key in ("human_radius", "danger_dist"):
+            if not float(getattr(self, key)) >= 0:
+                raise ValueError(f"env.{key} must be >= 0, got {getattr(self, key)!r}")
+        if not isinstance(self.time_limit, int) or self.time_limit < 1:
+            raise ValueError(f"env.time_limit must be a positive number of steps, got {self.time_limit!r}")
+
+
+def check_seed(seed) -> int:
+    """A seed as a Python int in ``[0, 2**63)`` (numpy integers accepted); one-line error naming it otherwise."""
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or not 0 <= int(seed) < 2**63:
+        raise ValueError(f"seed must be an integer in [0, 2**63), got {seed!r}")
+    return int(seed)
 
 
 @dataclass

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from crowdbench.envs.core import SimConfig
+from crowdbench.envs.core import SimConfig, check_seed
 from crowdbench.envs.crowdnav_cases import CROWDNAV, case_list, crowdnav_case
 from crowdbench.envs.humans.reactive import CROWDS, OrcaParams
 
@@ -137,7 +137,7 @@ class CaseSampler:
 
     def __init__(self, scenario: CrowdNavScenario, seed: int):
         self.scenario = scenario
-        self.gen = torch.Generator().manual_seed(int(seed))
+        self.gen = torch.Generator().manual_seed(check_seed(seed))
 
     def __call__(self, n: int) -> dict[str, torch.Tensor]:
         ids = torch.randint(0, CROWDNAV.train_size, (n,), generator=self.gen).tolist()

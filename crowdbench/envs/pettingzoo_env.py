@@ -40,7 +40,7 @@ import torch
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
-from crowdbench.envs.core import OUTCOMES
+from crowdbench.envs.core import OUTCOMES, check_seed
 from crowdbench.envs.specs import gym_spaces
 from crowdbench.envs.world import World
 
@@ -77,7 +77,7 @@ class CrowdParallelEnv(ParallelEnv):
 
     def reset(self, seed: int | None = None, options: dict | None = None):
         if seed is not None:
-            self._sampler = self.scenario.sampler(seed)
+            self._sampler = self.scenario.sampler(check_seed(seed))
         elif self._sampler is None:
             self._sampler = self.scenario.sampler(secrets.randbits(63))
         episode = self._sampler(1)  # always drawn, so the stream does not depend on options
@@ -104,8 +104,8 @@ class CrowdParallelEnv(ParallelEnv):
             a = np.asarray(actions[agent], dtype=np.float32)
             if a.size != 2:
                 raise ValueError(f"action for {agent!r} must have 2 elements [vx, vy], got shape {a.shape}")
-            if np.isnan(a).any():
-                raise ValueError(f"action for {agent!r} contains NaN: {a.reshape(2).tolist()}")
+            if not np.isfinite(a).all():
+                raise ValueError(f"action for {agent!r} is not finite: {a.reshape(2).tolist()}")
             act[0, self._index[agent]] = torch.from_numpy(a.reshape(2))
         info = self.world.step(act)
         live = self.agents

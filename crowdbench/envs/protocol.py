@@ -19,7 +19,7 @@ from pathlib import Path
 import torch
 
 from crowdbench.data.scenes import check_scene, load_scene
-from crowdbench.envs.core import START_CLEARANCE, SimConfig, free_start
+from crowdbench.envs.core import START_CLEARANCE, SimConfig, check_seed, free_start
 
 PROTOCOL_VERSION = "v1"
 PROTOCOL_DIR = Path(__file__).resolve().parents[1] / "data" / f"protocol_{PROTOCOL_VERSION}"
@@ -122,7 +122,7 @@ class TrainSampler:
 
     def __init__(self, last_start: int, seed: int = 0, is_free=None):
         self.last_start = last_start
-        self.gen = torch.Generator().manual_seed(seed)
+        self.gen = torch.Generator().manual_seed(check_seed(seed))
         self.is_free = is_free
 
     def draw(self, n: int) -> tuple[torch.Tensor, torch.Tensor]:

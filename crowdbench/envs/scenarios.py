@@ -14,6 +14,8 @@ scenario, so training and evaluation place episodes with one piece of code.
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from crowdbench.data.scenes import Scene
@@ -58,6 +60,8 @@ class ReplayScenario:
         if "t0" in options:
             t0 = torch.tensor([int(options["t0"])], dtype=torch.long)
         if "angle" in options:
+            if not math.isfinite(float(options["angle"])):
+                raise ValueError(f"options['angle'] must be finite, got {options['angle']!r}")
             angle = torch.tensor([float(options["angle"])], dtype=torch.float64)
         return self.episodes(t0, angle)
 

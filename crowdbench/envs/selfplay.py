@@ -23,7 +23,7 @@ from dataclasses import dataclass, replace
 import torch
 
 from crowdbench.data.scenes import Scene, load_scene
-from crowdbench.envs.core import START_CLEARANCE, SimConfig, free_start
+from crowdbench.envs.core import START_CLEARANCE, SimConfig, check_seed, free_start
 from crowdbench.envs.world import DONE_AGENTS
 
 SCENARIOS = ("circle", "square", "mixed")
@@ -173,6 +173,8 @@ class SelfPlayScenario:
         for key in ("start", "goal"):
             if key in options:
                 episode[key] = torch.as_tensor(options[key], dtype=torch.float32).view(1, self.A, 2)
+                if not torch.isfinite(episode[key]).all():
+                    raise ValueError(f"options[{key!r}] must be finite")
         if "t0" in options:
             episode["t0"] = torch.tensor([int(options["t0"])], dtype=torch.long)
         return episode
@@ -186,7 +188,7 @@ class EpisodeSampler:
 
     def __init__(self, scenario: SelfPlayScenario, seed: int = 0):
         self.scenario = scenario
-        self.gen = torch.Generator().manual_seed(int(seed))
+        self.gen = torch.Generator().manual_seed(check_seed(seed))
 
     def __call__(self, n: int) -> dict[str, torch.Tensor]:
         return self.scenario.draw(n, self.gen)

@@ -59,6 +59,8 @@ class World:
             raise ValueError(f"unknown done_agents {done_agents!r}; valid: {', '.join(DONE_AGENTS)}")
         if n_agents < 1:
             raise ValueError(f"n_agents must be >= 1, got {n_agents}")
+        if not isinstance(batch, int) or batch < 1:
+            raise ValueError(f"batch (env.batch) must be a positive integer, got {batch!r}")
         self.cfg, self.crowd = cfg, crowd
         self.B, self.A, self.Mh = batch, n_agents, crowd.M
         self.interact, self.done_agents = interact, done_agents
@@ -152,8 +154,8 @@ class World:
         ``extra``: ``human_clearance`` ``[B, A]``; with ``interact``, also ``pair_collision``
         ``[B, A, A]`` and ``agent_clearance`` ``[B, A]`` (end-of-step gap to the nearest agent).
         """
-        if torch.isnan(action).any():
-            raise ValueError("action contains NaN")
+        if not torch.isfinite(action).all():  # inf would become NaN in the frame rotation
+            raise ValueError("action contains NaN or inf")
         cfg = self.cfg
         frame = frame or cfg.frame
         act = to_world(action.unsqueeze(-2), self.heading).squeeze(-2) if frame == "rotate" else action
