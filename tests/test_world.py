@@ -80,7 +80,7 @@ def test_visible_robot_is_avoided(humans):
     """A robot standing at the centre of the circle, where the humans cross: invisible, they walk into it;
     visible, they go around (ORCA and social force) and never overlap it."""
     still = lambda w: torch.zeros(w.B, 1, 2)
-    kw = dict(action=still, start=[0.0, 0.0])
+    kw = {"action": still, "start": [0.0, 0.0]}
     inv, clear_inv, _ = rollout_humans(CrowdNavConfig(humans=humans, frame="world"), **kw)
     vis, clear_vis, _ = rollout_humans(CrowdNavConfig(humans=humans, robot_visible=True, frame="world"), **kw)
     assert not torch.equal(inv, vis)
