@@ -226,13 +226,18 @@ def evaluate(policy: Policy, scenes=PAPER_SCENES, episodes: int | None = None, o
         # an undefined scene value (no successful episode: no nav time) leaves the average undefined
         results["average_paper_scenes"] = {k: None if None in v else sum(v) / len(v) for k, v in means.items()}
     if out_dir is not None:
-        out_dir = Path(out_dir)
-        out_dir.mkdir(parents=True, exist_ok=True)
-        (out_dir / "results.json").write_text(json.dumps(results, indent=1) + "\n")
-        if save_episodes:
-            with open(out_dir / "episodes.jsonl", "w") as f:
-                f.writelines(json.dumps(r) + "\n" for r in rows)
+        write_results(out_dir, results, rows if save_episodes else None)
     return results
+
+
+def write_results(out_dir: Path, results: dict, rows: list[dict] | None = None) -> None:
+    """``results.json`` and, with ``rows``, ``episodes.jsonl`` (one episode per line) in ``out_dir``."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "results.json").write_text(json.dumps(results, indent=1) + "\n")
+    if rows is not None:
+        with open(out_dir / "episodes.jsonl", "w") as f:
+            f.writelines(json.dumps(r) + "\n" for r in rows)
 
 
 def format_table(results: dict) -> str:

@@ -9,7 +9,6 @@ does not depend on the robot, so it is simulated once without it and handed to t
 
 from __future__ import annotations
 
-import json
 import re
 from dataclasses import asdict, replace
 from pathlib import Path
@@ -22,7 +21,7 @@ from crowdbench.envs.crowdnav import CrowdNavConfig, crowdnav_crowd, list_digest
 from crowdbench.envs.factory import crowdnav_world
 from crowdbench.envs.policy import Policy
 from crowdbench.envs.torchrl_env import CrowdEnv
-from crowdbench.eval import aggregate, episode_metrics, robot_traces, select_episodes
+from crowdbench.eval import aggregate, episode_metrics, robot_traces, select_episodes, write_results
 from crowdbench.numerics import describe
 
 PROTOCOL = "crowdnav-v1"
@@ -92,12 +91,7 @@ def evaluate_crowdnav(policy: Policy, cfg: CrowdNavConfig, settings=None, episod
             rows += episode_rows(name, eps, tr, m, c)
     results["sim_config"] = {k: v for k, v in asdict(cfg).items() if k not in ("scenario", "n_humans", "frame")}
     if out_dir is not None:
-        out_dir = Path(out_dir)
-        out_dir.mkdir(parents=True, exist_ok=True)
-        (out_dir / "results.json").write_text(json.dumps(results, indent=1) + "\n")
-        if save_episodes:
-            with open(out_dir / "episodes.jsonl", "w") as f:
-                f.writelines(json.dumps(r) + "\n" for r in rows)
+        write_results(out_dir, results, rows if save_episodes else None)
     return results
 
 
