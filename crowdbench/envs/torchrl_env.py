@@ -72,7 +72,8 @@ class CrowdEnv(EnvBase):
         self._next_episode += n
         return {k: v[idx] for k, v in self.episodes.items()}
 
-    def _output(self, clearance: torch.Tensor, agent_clearance: torch.Tensor | None) -> TensorDict:
+    def _output(self, clearance: torch.Tensor, agent_clearance: torch.Tensor | None,
+                observation: dict | None = None) -> TensorDict:
         B, A, w = self.batch_size[0], self.world.A, self.world
         status = w.outcome.clone()
         term = ((status == SUCCESS) | (status == COLLISION)).unsqueeze(-1)
@@ -80,8 +81,8 @@ class CrowdEnv(EnvBase):
         info = {"outcome": status, "clearance": clearance, "goal_dist": (w.goal - w.pos).norm(dim=-1)}
         if w.interact:
             info["agent_clearance"] = agent_clearance
-        agents = TensorDict({"observation": w.observe(), "info": info, "done": done, "terminated": term,
-                             "truncated": done & ~term}, batch_size=(B, A))
+        agents = TensorDict({"observation": w.observe() if observation is None else observation, "info": info,
+                             "done": done, "terminated": term, "truncated": done & ~term}, batch_size=(B, A))
         env_done, env_term = done.all(1), term.all(1)
         return TensorDict({GROUP: agents, "done": env_done, "terminated": env_term, "truncated": env_done & ~env_term},
                           batch_size=(B,))
@@ -96,7 +97,15 @@ class CrowdEnv(EnvBase):
             return self._last.clone()
         self.world.reset(mask, self._draw(int(mask.sum())))
         agent_clear = self.world.agent_clearance().amin(-1) if self.world.interact else None
-        self._last = self._output(self.world.min_clearance(), agent_clear)
+        observation = None
+        if self._last is not None and not mask.all():
+            # only the reset environments' views change (the others' are those of the last step): new
+            # tensors, since the last step's are the caller's
+            rows = mask.nonzero().squeeze(-1)
+            observation = self._last[GROUP, "observation"].clone()
+            for key, value in self.world.observe(rows=rows).items():
+                observation[key][rows] = value
+        self._last = self._output(self.world.min_clearance(), agent_clear, observation)
         return self._last.clone()
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:

@@ -204,30 +204,36 @@ class World:
                         clearance=end, swept_clearance=swept, active=active, extra=extra)
 
     # ------------------------------------------------------------------ observation
-    def observe(self, frame: str | None = None) -> dict[str, torch.Tensor]:
+    def observe(self, frame: str | None = None, rows: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         """Each agent's view in its own frame (SPEC section 3; layout in :mod:`crowdbench.envs.policy`).
 
         - ``robot`` ``[B, A, 6]``: ``[px, py, vx, vy, gx, gy]`` (position 0 in relative frames);
         - ``humans`` ``[B, A, S, 4]``: ``[px, py, vx, vy]`` of every slot, zero where unobserved;
         - ``humans_mask`` ``[B, A, S]``: present and within the sensing range (centre distance).
+
+        ``rows`` (environment indices): the views of those environments only, ``[len(rows), ...]``; every
+        value is computed per environment, so they are the same bits as the full batch's rows.
         """
         frame = frame or self.cfg.frame
-        B, A, S = self.B, self.A, self.M
-        opos, ovel, ovalid = self.humans()
+        A, S = self.A, self.M
+        pick = (lambda x: x) if rows is None else (lambda x: x[rows])
+        opos, ovel, ovalid = (pick(x) for x in self.humans())
+        pos, vel, goal, heading = pick(self.pos), pick(self.vel), pick(self.goal), pick(self.heading)
+        B = pos.shape[0]
         if self.interact:
-            opos, ovel = torch.cat((self.pos, opos), 1), torch.cat((self.vel, ovel), 1)
-            ovalid = torch.cat((self.present(), ovalid), 1)
-        rel = opos.unsqueeze(1) - self.pos.unsqueeze(2)  # [B, A, S, 2]
+            opos, ovel = torch.cat((pos, opos), 1), torch.cat((vel, ovel), 1)
+            ovalid = torch.cat((pick(self.present()), ovalid), 1)
+        rel = opos.unsqueeze(1) - pos.unsqueeze(2)  # [B, A, S, 2]
         seen = ovalid.unsqueeze(1) & ((rel * rel).sum(-1) <= self.cfg.sensing_range**2)
         if self.interact:
             seen[:, :, :A] &= ~self.eye
         if frame == "world":
             rel = opos.unsqueeze(1).expand(B, A, S, 2)
-        vel = ovel.unsqueeze(1).expand(B, A, S, 2)
-        own = torch.stack((self.vel, self.goal - self.pos if frame != "world" else self.goal), -2)  # [B, A, 2, 2]
+        hvel = ovel.unsqueeze(1).expand(B, A, S, 2)
+        own = torch.stack((vel, goal - pos if frame != "world" else goal), -2)  # [B, A, 2, 2]
         if frame == "rotate":  # elementwise: the same bits whatever the tensor it is applied to
-            rel, vel, own = to_local(rel, self.heading), to_local(vel, self.heading), to_local(own, self.heading)
-        humans = torch.cat((rel, vel), -1) * seen.unsqueeze(-1)
-        pos = self.pos if frame == "world" else torch.zeros_like(self.pos)
-        robot = torch.cat((pos, own.reshape(B, A, 4)), -1)
+            rel, hvel, own = to_local(rel, heading), to_local(hvel, heading), to_local(own, heading)
+        humans = torch.cat((rel, hvel), -1) * seen.unsqueeze(-1)
+        origin = pos if frame == "world" else torch.zeros_like(pos)
+        robot = torch.cat((origin, own.reshape(B, A, 4)), -1)
         return {"robot": robot, "humans": humans, "humans_mask": seen}
