@@ -82,9 +82,12 @@ def _hydra_message(err: Exception, overrides: list[str]) -> str:
 def cmd_eval(overrides: list[str]) -> int:
     from crowdbench.envs.factory import env_name, is_selfplay
 
+    from crowdbench.envs.core import check_seed
+
     cfg = compose(overrides)
     try:
         name = env_name(cfg.env)
+        check_seed(cfg.seed)
     except ValueError as e:
         raise UsageError(str(e)) from None
     if name == "crowdnav":

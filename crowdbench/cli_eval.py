@@ -32,11 +32,24 @@ def output_dir(cfg, command: str, name: str) -> Path:
 def eval_options(cfg) -> tuple[list[str], int | None]:
     from crowdbench.data.scenes import check_scene
 
+    from crowdbench.envs.core import check_seed
+    from crowdbench.envs.protocol import EVAL_SCENES
+
+    try:
+        check_seed(cfg.seed)
+    except ValueError as e:
+        raise UsageError(str(e)) from None
     scenes = list(cfg.eval.scenes) if not isinstance(cfg.eval.scenes, str) else [cfg.eval.scenes]
+    if not scenes:
+        raise UsageError(f"eval.scenes is empty; evaluation scenes: {', '.join(EVAL_SCENES)}")
     try:
         scenes = [check_scene(s) for s in scenes]
     except ValueError as e:
         raise UsageError(str(e)) from None
+    unlisted = [s for s in scenes if s not in EVAL_SCENES]
+    if unlisted:
+        raise UsageError(f"eval.scenes: {', '.join(unlisted)} has no protocol episode list (the training scene); "
+                         f"evaluation scenes: {', '.join(EVAL_SCENES)}")
     episodes = cfg.eval.episodes
     if episodes is not None and (not isinstance(episodes, int) or episodes < 1):
         raise UsageError(f"eval.episodes must be a positive integer or null, got {episodes!r}")
@@ -48,11 +61,11 @@ def run_eval(policy, cfg, out: Path, overrides: list[str]) -> dict:
 
     scenes, episodes = eval_options(cfg)
     sim = SimConfig.fields_of(cfg.env)
-    sim["frame"] = policy.frame
     try:
-        SimConfig(**sim)  # bad env values are one-line errors before anything runs
+        SimConfig(**sim)  # bad env values (the frame too, replaced by the policy's) are one-line errors
     except ValueError as e:
         raise UsageError(str(e)) from None
+    sim["frame"] = policy.frame
     recorders = recorder_factory(policy, cfg, out, scenes)
     results = evaluate(policy, scenes, episodes, out_dir=out, save_episodes=bool(cfg.eval.save_episodes),
                        sim_overrides=sim, meta={"seed": cfg.seed, "overrides": overrides},

@@ -50,7 +50,7 @@ class SimConfig:
 
     def __post_init__(self):
         if self.frame not in ("rotate", "translate", "world"):
-            raise ValueError(f"unknown frame {self.frame!r}; valid: rotate, translate, world")
+            raise ValueError(f"unknown env.frame {self.frame!r}; valid: rotate, translate, world")
         if self.reward not in REWARDS:
             raise ValueError(f"unknown env.reward {self.reward!r}; valid: {', '.join(REWARDS)}")
         for key in ("dt", "v_max", "robot_radius", "sensing_range"):
