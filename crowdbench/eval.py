@@ -95,8 +95,9 @@ def drive(env: CrowdEnv, policy: Policy, recorder=None, on_reset=None, on_step=N
         recorder.close()
 
 
-def rollout(policy: Policy, scene: str, episodes: list[dict], cfg: SimConfig, recorder=None) -> dict:
-    """Run ``episodes`` of ``scene`` in one batch through the env; return per-step traces ``[T, B]``."""
+def rollout(policy: Policy, scene, episodes: list[dict], cfg: SimConfig, recorder=None) -> dict:
+    """Run ``episodes`` of ``scene`` (a name or a :class:`~crowdbench.data.scenes.Scene`) in one batch
+    through the env; return per-step traces ``[T, B]``."""
     world, scenario = replay_world(scene, len(episodes), replace(cfg, frame=policy.frame))
     return robot_traces(CrowdEnv(world, scenario, episodes=scenario.from_list(episodes)), policy, recorder)
 

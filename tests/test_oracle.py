@@ -38,10 +38,9 @@ def crossing_scene(T: int = 130, crossings=(16, 20, 24)) -> Scene:
 
 
 def run_on(scene, policy, n=3, monkeypatch=None):
-    monkeypatch.setattr(ev, "load_scene", lambda *a, **k: scene)
     eps = [{"t0": t0, "angle": 0.0} for t0 in (0, 4, 8)[:n]]  # the crossings met at other times
     cfg = SimConfig(frame=policy.frame)
-    return ev.rollout(policy, "crossing", eps, cfg)
+    return ev.rollout(policy, scene, eps, cfg)  # a Scene object instead of a name
 
 
 def test_oracle_avoids_a_crossing_that_straight_hits(monkeypatch):
