@@ -74,6 +74,15 @@ INVOCATIONS: dict[str, list[list[str]]] = {
         [["eval", "env=selfplay", f"policy={p}", "env.eval_episodes=2", "env.eval_scenarios=[circle]"]
          for p in ("orca", "straight", "{run}/checkpoint.pt")],
     "crowdbench eval policy=SELFPLAY_RUN/checkpoint.pt": [["eval", "policy={selfplay}/checkpoint.pt", *EVAL]],
+    "crowdbench eval env=crowdnav policy=orca\\|straight\\|oracle\\|RUN/checkpoint.pt":
+        [["eval", "env=crowdnav", f"policy={p}", "env.eval_episodes=3"]
+         for p in ("orca", "straight", "oracle", "{run}/checkpoint.pt")],
+    "crowdbench eval env=crowdnav ... env.eval_settings=[circle_n5,circle_n20,square_n5] env.humans=sfm "
+    "env.robot_visible=true":
+        [["eval", "env=crowdnav", "policy=straight", "env.eval_settings=[circle_n5,circle_n20,square_n5]",
+          "env.humans=sfm", "env.robot_visible=true", "env.eval_episodes=2"]],
+    "crowdbench run env=crowdnav algo=td3 encoder=gatedgcn":
+        [["run", "env=crowdnav", "algo=td3", "encoder=gatedgcn", *RUN, "env.eval_episodes=2"]],
     "crowdbench eval ... viz.record=true [viz.episodes=[0,21]] [viz.scenes=[students003]]":
         [["eval", "policy=straight", "viz.record=true", "viz.episodes=[0,249]", "viz.scenes=[hotel]", *EVAL,
           "out={tmp}/viz_eval"]],
