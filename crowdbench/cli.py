@@ -80,9 +80,8 @@ def _hydra_message(err: Exception, overrides: list[str]) -> str:
 
 
 def cmd_eval(overrides: list[str]) -> int:
-    from crowdbench.envs.factory import env_name, is_selfplay
-
     from crowdbench.envs.core import check_seed
+    from crowdbench.envs.factory import env_name, is_selfplay
 
     cfg = compose(overrides)
     try:

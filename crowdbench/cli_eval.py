@@ -31,7 +31,6 @@ def output_dir(cfg, command: str, name: str) -> Path:
 
 def eval_options(cfg) -> tuple[list[str], int | None]:
     from crowdbench.data.scenes import check_scene
-
     from crowdbench.envs.core import check_seed
     from crowdbench.envs.protocol import EVAL_SCENES
 

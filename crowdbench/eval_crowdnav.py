@@ -17,7 +17,7 @@ from types import SimpleNamespace
 import torch
 
 from crowdbench.data.scenes import Scene
-from crowdbench.envs.crowdnav import CrowdNavConfig, crowdnav_crowd, list_digest
+from crowdbench.envs.crowdnav import CrowdNavConfig, CrowdNavScenario, crowdnav_crowd, list_digest
 from crowdbench.envs.factory import crowdnav_world
 from crowdbench.envs.policy import Policy
 from crowdbench.envs.torchrl_env import CrowdEnv
@@ -75,8 +75,7 @@ def evaluate_crowdnav(policy: Policy, cfg: CrowdNavConfig, settings=None, episod
     rows = []
     for name, (scenario, n) in zip(settings, parsed, strict=True):
         c = replace(cfg, scenario=scenario, n_humans=n, frame=policy.frame)
-        world, scen = crowdnav_world(c, 1)
-        full = scen.test_list(phase)
+        full = CrowdNavScenario(c).test_list(phase)
         results["lists"][name] = list_digest(full)
         keep = torch.tensor([e["episode"] for e in select_episodes({"episodes": [{"episode": i} for i in
                                                                                  range(len(full["case"]))]}, episodes)])
