@@ -33,7 +33,7 @@ import torch
 
 from crowdbench.envs.core import SimConfig, check_seed
 from crowdbench.envs.crowdnav_cases import CROWDNAV, case_list, crowdnav_case
-from crowdbench.envs.humans.reactive import CROWDS, OrcaParams
+from crowdbench.envs.humans.reactive import CROWDS, OrcaParams, reactive_crowd
 
 SCENARIOS = ("circle", "square")
 HUMAN_MODELS = tuple(CROWDS)
@@ -79,9 +79,7 @@ class CrowdNavConfig(SimConfig):
 
 def crowdnav_crowd(cfg: CrowdNavConfig, batch: int):
     """The crowd model ``cfg.humans`` for ``batch`` environments of ``cfg.n_humans`` humans."""
-    kwargs = {"params": cfg.orca} if cfg.humans == "orca" else {}
-    return CROWDS[cfg.humans](batch, cfg.n_humans, cfg.human_radius, cfg.human_v_pref, cfg.dt,
-                              robot_visible=cfg.robot_visible, robot_radius=cfg.robot_radius, **kwargs)
+    return reactive_crowd(cfg, batch, cfg.orca)
 
 
 def _episodes(cases: dict) -> dict[str, torch.Tensor]:

@@ -7,7 +7,7 @@ protocol v1), ``selfplay`` (``n_agents`` learning agents, optional replayed back
 
 from __future__ import annotations
 
-from crowdbench.data.scenes import Scene, load_scene
+from crowdbench.data.scenes import Scene
 from crowdbench.envs.core import SimConfig
 from crowdbench.envs.humans.replay import NoCrowd, ReplayCrowd
 from crowdbench.envs.world import World
@@ -32,16 +32,9 @@ def selfplay_config(env_cfg, **overrides):
     return SelfPlayConfig(**{**SelfPlayConfig.fields_of(env_cfg), **overrides})
 
 
-def replay_scene(name: str, cfg: SimConfig) -> Scene:
-    scene = load_scene(name, cfg.dt, cfg.time_base)  # ValueError on an unknown scene
-    if scene.n_steps <= cfg.time_limit + 1:
-        raise ValueError(f"scene {scene.name} is shorter than the time limit ({cfg.time_limit} steps)")
-    return scene
-
-
 def replay_world(scene: str | Scene, batch: int, cfg: SimConfig | None = None):
     """``(world, scenario)`` of protocol v1 on ``scene``: one robot, replayed humans."""
-    from crowdbench.envs.scenarios import ReplayScenario
+    from crowdbench.envs.scenarios import ReplayScenario, replay_scene
 
     cfg = cfg or SimConfig()
     scene = replay_scene(scene, cfg) if isinstance(scene, str) else scene
@@ -54,10 +47,9 @@ def selfplay_world(cfg, batch: int):
 
     scene = background_scene(cfg)
     if cfg.n_humans:
-        from crowdbench.envs.humans.reactive import CROWDS
+        from crowdbench.envs.humans.reactive import reactive_crowd
 
-        crowd = CROWDS[cfg.humans](batch, cfg.n_humans, cfg.human_radius, cfg.human_v_pref, cfg.dt,
-                                   robot_visible=cfg.robot_visible, robot_radius=cfg.robot_radius)
+        crowd = reactive_crowd(cfg, batch)
     else:
         crowd = ReplayCrowd(scene, batch, cfg.time_limit) if scene is not None else NoCrowd(batch)
     world = World(batch, cfg, crowd, n_agents=cfg.n_agents, interact=True, done_agents=cfg.done_agents)

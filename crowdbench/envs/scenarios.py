@@ -18,9 +18,17 @@ import math
 
 import torch
 
-from crowdbench.data.scenes import Scene
+from crowdbench.data.scenes import Scene, load_scene
 from crowdbench.envs.core import START_CLEARANCE, SimConfig, free_start
 from crowdbench.envs.protocol import TrainSampler
+
+
+def replay_scene(name: str, cfg: SimConfig) -> Scene:
+    """Scene ``name`` resampled at ``cfg.dt``; an error if it is too short for one episode."""
+    scene = load_scene(name, cfg.dt, cfg.time_base)  # ValueError on an unknown scene
+    if scene.n_steps <= cfg.time_limit + 1:
+        raise ValueError(f"scene {scene.name} is shorter than the time limit ({cfg.time_limit} steps)")
+    return scene
 
 
 class ReplayScenario:

@@ -22,7 +22,7 @@ from dataclasses import dataclass, replace
 
 import torch
 
-from crowdbench.data.scenes import Scene, load_scene
+from crowdbench.data.scenes import Scene
 from crowdbench.envs.core import START_CLEARANCE, SimConfig, check_seed, free_start
 from crowdbench.envs.world import DONE_AGENTS
 
@@ -201,12 +201,9 @@ class EpisodeSampler:
 
 
 def background_scene(cfg: SelfPlayConfig) -> Scene | None:
-    if not cfg.background:
-        return None
-    scene = load_scene(cfg.background, cfg.dt, cfg.time_base)
-    if scene.n_steps <= cfg.time_limit + 1:
-        raise ValueError(f"scene {scene.name} is shorter than the time limit ({cfg.time_limit} steps)")
-    return scene
+    from crowdbench.envs.scenarios import replay_scene
+
+    return replay_scene(cfg.background, cfg) if cfg.background else None
 
 
 def episode_set(cfg: SelfPlayConfig, n: int, seed: int, scene: Scene | None = None) -> dict[str, torch.Tensor]:

@@ -130,3 +130,11 @@ class SfmCrowd(ReactiveCrowd):
 
 
 CROWDS = {"orca": OrcaCrowd, "sfm": SfmCrowd}
+
+
+def reactive_crowd(cfg, batch: int, orca: OrcaParams | None = None) -> ReactiveCrowd:
+    """``cfg.n_humans`` humans of model ``cfg.humans`` for ``batch`` environments, from a simulator config
+    with the humans' fields (``human_radius``, ``human_v_pref``, ``robot_visible``; CrowdNav, self-play)."""
+    kwargs = {"params": orca} if cfg.humans == "orca" else {}
+    return CROWDS[cfg.humans](batch, cfg.n_humans, cfg.human_radius, cfg.human_v_pref, cfg.dt,
+                              robot_visible=cfg.robot_visible, robot_radius=cfg.robot_radius, **kwargs)
