@@ -16,6 +16,7 @@ from crowdbench.cli_eval import (  # the evaluation half of the command line
     make_policy,
     make_probe,
     output_dir,
+    protocol_humans,
     run_crowdnav_eval,
     run_eval,
     run_selfplay_eval,
@@ -103,6 +104,9 @@ def cmd_eval(overrides: list[str]) -> int:
     eval_options(cfg)  # reject bad scenes before loading anything
     check_protocol_fixed(cfg)
     check_viz(cfg)
+    if protocol_humans(cfg) is not None and str(cfg.policy) in policies.PRIVILEGED:
+        raise UsageError(f"the {cfg.policy} knows the humans' future, which in protocol v2 depends on the robot: "
+                         "not available with env.humans=reactive_replay")
     policy = make_policy(str(cfg.policy), cfg)
     run_eval(policy, cfg, output_dir(cfg, "eval", str(cfg.policy)), overrides)
     return 0

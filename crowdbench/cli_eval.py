@@ -55,6 +55,28 @@ def eval_options(cfg) -> tuple[list[str], int | None]:
     return scenes, episodes
 
 
+def protocol_humans(cfg) -> str | None:
+    """The reactive model protocol v2 evaluates with (``env.humans=reactive_replay``), or None for v1.
+
+    Training may use any ``env.reactive`` values; evaluation uses the protocol's, so different
+    ones are refused here rather than silently replaced."""
+    from crowdbench.envs.factory import replay_humans
+    from crowdbench.envs.protocol import generate_episodes_v2, reactive_params
+
+    try:
+        params = replay_humans(cfg.env)
+    except (ValueError, TypeError) as e:
+        raise UsageError(str(e)) from None
+    if params is None:
+        return None
+    fixed = reactive_params(generate_episodes_v2("eth"), params.model)[0]
+    for key, value in fixed.to_dict().items():
+        if getattr(params, key) != value:
+            raise UsageError(f"env.reactive.{key}={getattr(params, key)} conflicts with protocol v2 ({value}); "
+                             "evaluation always uses the protocol's value")
+    return params.model
+
+
 def run_eval(policy, cfg, out: Path, overrides: list[str]) -> dict:
     from crowdbench.eval import evaluate, format_table
 
@@ -66,9 +88,12 @@ def run_eval(policy, cfg, out: Path, overrides: list[str]) -> dict:
         raise UsageError(str(e)) from None
     sim["frame"] = policy.frame
     recorders = recorder_factory(policy, cfg, out, scenes)
-    results = evaluate(policy, scenes, episodes, out_dir=out, save_episodes=bool(cfg.eval.save_episodes),
-                       sim_overrides=sim, meta={"seed": cfg.seed, "overrides": overrides},
-                       recorder_factory=recorders)
+    try:
+        results = evaluate(policy, scenes, episodes, out_dir=out, save_episodes=bool(cfg.eval.save_episodes),
+                           sim_overrides=sim, meta={"seed": cfg.seed, "overrides": overrides},
+                           recorder_factory=recorders, humans=protocol_humans(cfg))
+    except ValueError as e:  # e.g. the oracle on protocol v2
+        raise UsageError(str(e)) from None
     print(format_table(results))
     print(f"results written to {out / 'results.json'}")
     return results
@@ -167,10 +192,11 @@ def make_probe(cfg):
 
         return probe_crowdnav
     scene = check_scene(cfg.train.probe_scene)
+    humans = protocol_humans(cfg) if env_name(cfg.env) == "replay" else None
 
     def probe(actor) -> dict[str, float]:
         res = evaluate(LearnedPolicy(actor, frame=cfg.env.frame), [scene], cfg.train.probe_episodes,
-                       sim_overrides=SimConfig.fields_of(cfg.env))["scenes"][scene]
+                       sim_overrides=SimConfig.fields_of(cfg.env), humans=humans)["scenes"][scene]
         return {f"probe_{scene}_success": res["success_rate"]["mean"],
                 f"probe_{scene}_collision": res["collision_rate"]["mean"]}
 

@@ -17,7 +17,16 @@ from crowdbench.data.scenes import check_scene
 from crowdbench.envs.core import OUTCOMES, RUNNING, SUCCESS, SimConfig
 from crowdbench.envs.factory import replay_world
 from crowdbench.envs.policy import ACTION, OBS, Policy
-from crowdbench.envs.protocol import PAPER_SCENES, PROTOCOL_VERSION, ProtocolSpec, load_episodes
+from crowdbench.envs.protocol import (
+    PAPER_SCENES,
+    PROTOCOL_VERSION,
+    V2,
+    V2_MODELS,
+    ProtocolSpec,
+    load_episodes,
+    load_episodes_v2,
+    reactive_params,
+)
 from crowdbench.envs.torchrl_env import CrowdEnv
 from crowdbench.numerics import describe
 
@@ -95,10 +104,10 @@ def drive(env: CrowdEnv, policy: Policy, recorder=None, on_reset=None, on_step=N
         recorder.close()
 
 
-def rollout(policy: Policy, scene, episodes: list[dict], cfg: SimConfig, recorder=None) -> dict:
+def rollout(policy: Policy, scene, episodes: list[dict], cfg: SimConfig, recorder=None, reactive=None) -> dict:
     """Run ``episodes`` of ``scene`` (a name or a :class:`~crowdbench.data.scenes.Scene`) in one batch
-    through the env; return per-step traces ``[T, B]``."""
-    world, scenario = replay_world(scene, len(episodes), replace(cfg, frame=policy.frame))
+    through the env (``reactive``: protocol v2's ``(ReactiveParams, SFMParams)``); return per-step traces ``[T, B]``."""
+    world, scenario = replay_world(scene, len(episodes), replace(cfg, frame=policy.frame), *(reactive or ()))
     return robot_traces(CrowdEnv(world, scenario, episodes=scenario.from_list(episodes)), policy, recorder)
 
 
@@ -106,6 +115,8 @@ def robot_traces(env: CrowdEnv, policy: Policy, recorder=None, privileged_view=N
     """Traces ``[T, B]`` of robot 0 of every environment of ``env`` driven by ``policy``."""
     world = env.world
     xy, clear, swept, reward, active = [], [], [], [], []
+    reactive = hasattr(world.crowd, "offset")  # protocol v2: how far the robot pushed the humans off their tracks
+    offset, deviation = [], []
 
     def on_step(w, info):
         xy.append(w.pos[:, 0].clone())
@@ -113,6 +124,10 @@ def robot_traces(env: CrowdEnv, policy: Policy, recorder=None, privileged_view=N
         swept.append(info.swept_clearance[:, 0])
         reward.append(info.reward[:, 0])
         active.append(info.active[:, 0])
+        if reactive:
+            present = w.humans()[2]
+            offset.append((w.crowd.offset.norm(dim=-1) * present).amax(-1) if w.Mh else torch.zeros(w.B))
+            deviation.append((w.crowd.dev.norm(dim=-1) * present).sum(-1) * w.cfg.dt)
 
     first = {}
 
@@ -120,11 +135,14 @@ def robot_traces(env: CrowdEnv, policy: Policy, recorder=None, privileged_view=N
         first.update(xy=w.pos[:, 0].clone(), clearance0=w.min_clearance()[:, 0])
 
     drive(env, policy, recorder, on_reset, on_step, privileged_view)
-    return {
+    traces = {
         "xy": torch.stack([first["xy"], *xy]), "clearance": torch.stack(clear), "swept": torch.stack(swept),
         "reward": torch.stack(reward), "active": torch.stack(active), "outcome": world.outcome[:, 0].clone(),
         "clearance0": first["clearance0"], "start": world.start[:, 0], "goal": world.goal[:, 0],
     }
+    if reactive:
+        traces.update(crowd_offset=torch.stack(offset), crowd_deviation=torch.stack(deviation))
+    return traces
 
 
 def episode_metrics(tr: dict, cfg: SimConfig, gamma: float = 0.99) -> dict[str, torch.Tensor]:
@@ -143,7 +161,11 @@ def episode_metrics(tr: dict, cfg: SimConfig, gamma: float = 0.99) -> dict[str, 
     success = tr["outcome"] == SUCCESS
     discount = gamma ** torch.arange(act.shape[0], dtype=torch.float64).unsqueeze(1)
     straight = (tr["goal"] - tr["start"]).double().norm(dim=-1)
-    return {
+    crowd = {}
+    if "crowd_offset" in tr:  # protocol v2
+        crowd = {"crowd_offset_max": (tr["crowd_offset"].double() * act).amax(0),
+                 "crowd_deviation": (tr["crowd_deviation"].double() * act).sum(0)}
+    return crowd | {
         "outcome": tr["outcome"],
         "steps": steps,
         "nav_time": steps * cfg.dt,
@@ -161,27 +183,32 @@ def episode_metrics(tr: dict, cfg: SimConfig, gamma: float = 0.99) -> dict[str, 
     }
 
 
+RENAMED = {"danger_steps": "dangers_per_episode", "personal_space": "personal_space_compliance",
+           "return": "discounted_return", "crowd_offset_max": "crowd_offset_max_m", "crowd_deviation": "crowd_deviation_m"}
+
+
 def aggregate(m: dict[str, torch.Tensor]) -> dict:
     n = m["outcome"].numel()
     ok = m["success"]
     out = {f"{name}_rate": rate_ci(int((m["outcome"] == code).sum()), n) for code, name in OUTCOMES.items()}
     out["nav_time_s"] = mean_ci(m["nav_time"][ok])
     out["path_length_ratio"] = mean_ci(m["path_ratio"][ok])
-    for key in ("danger_steps", "danger_events", "min_clearance", "path_length", "mean_speed", "jerk",
-                "personal_space", "return"):
-        out[{"danger_steps": "dangers_per_episode", "personal_space": "personal_space_compliance",
-             "return": "discounted_return"}.get(key, key)] = mean_ci(m[key].double())
+    keys = ("danger_steps", "danger_events", "min_clearance", "path_length", "mean_speed", "jerk",
+            "personal_space", "return") + tuple(k for k in ("crowd_offset_max", "crowd_deviation") if k in m)
+    for key in keys:
+        out[RENAMED.get(key, key)] = mean_ci(m[key].double())
     return out
 
 
-def episode_records(scene: str, episodes: list[dict], tr: dict, m: dict, cfg: SimConfig) -> list[dict]:
+def episode_records(scene: str, episodes: list[dict], tr: dict, m: dict, cfg: SimConfig,
+                    protocol: str = PROTOCOL_VERSION) -> list[dict]:
     """Rows of ``episodes.jsonl`` in SPEC section 6's format."""
     rows = []
     for b, e in enumerate(episodes):
         n = int(m["steps"][b])
         ok = bool(m["success"][b])
         rows.append({
-            "protocol": PROTOCOL_VERSION, "scene": scene, "episode": e["episode"],
+            "protocol": protocol, "scene": scene, "episode": e["episode"],
             "start_time_s": e["start_time_s"], "dt": cfg.dt, "start": e["start"], "goal": e["goal"],
             "robot_xy": [[round(x, 5) for x in p] for p in tr["xy"][: n + 1, b].tolist()],
             "outcome": OUTCOMES[int(m["outcome"][b])],
@@ -200,26 +227,41 @@ def sim_config_for(spec: ProtocolSpec, **overrides) -> SimConfig:
 
 def evaluate(policy: Policy, scenes=PAPER_SCENES, episodes: int | None = None, out_dir: Path | None = None,
              save_episodes: bool = False, sim_overrides: dict | None = None, meta: dict | None = None,
-             recorder_factory=None) -> dict:
-    """Evaluate ``policy`` on the saved protocol episode lists; optionally write results files."""
+             recorder_factory=None, humans: str | None = None) -> dict:
+    """Evaluate ``policy`` on the saved protocol episode lists; optionally write results files.
+
+    ``humans``: None for protocol v1 (the recording), ``orca`` / ``sfm`` for protocol v2 (reactive replay
+    with that model, its parameters fixed by the v2 lists)."""
     scenes = [check_scene(s) for s in scenes]
-    results = {"protocol": PROTOCOL_VERSION, "policy": policy.name, "meta": meta or {}, "numerics": describe(),
+    if humans is not None and humans not in V2_MODELS:
+        raise ValueError(f"unknown reactive model {humans!r}; valid: {', '.join(V2_MODELS)}")
+    if humans is not None and getattr(policy, "privileged", False):
+        raise ValueError("the oracle knows the humans' future, which in protocol v2 depends on the robot: "
+                         "it has no privileged plan there (protocol v1 and CrowdNav with an invisible robot only)")
+    protocol = PROTOCOL_VERSION if humans is None else V2
+    results = {"protocol": protocol, "policy": policy.name, "meta": meta or {}, "numerics": describe(),
                "scenes": {}}
+    if humans is not None:
+        results["humans"] = humans
     if getattr(policy, "privileged", False):
         results["privileged"] = True
     rows = []
     for scene in scenes:
-        saved = load_episodes(scene)
-        spec = ProtocolSpec(**saved["spec"])
+        saved = load_episodes(scene) if humans is None else load_episodes_v2(scene)
+        spec = ProtocolSpec(**{**saved["spec"], "version": PROTOCOL_VERSION})
         cfg = sim_config_for(spec, **(sim_overrides or {}))
         eps = select_episodes(saved, episodes)
         recorder = recorder_factory(scene) if recorder_factory else None
-        tr = rollout(policy, scene, eps, cfg, recorder)
+        reactive = None if humans is None else reactive_params(saved, humans)
+        tr = rollout(policy, scene, eps, cfg, recorder, reactive)
         m = episode_metrics(tr, cfg)
         results["scenes"][scene] = aggregate(m)
         if save_episodes:
-            rows += episode_records(scene, eps, tr, m, cfg)
+            rows += episode_records(scene, eps, tr, m, cfg, protocol)
         results["sim_config"] = asdict(cfg)
+        if reactive is not None:
+            results["reactive"] = {**reactive[0].to_dict(), **({"social_force": asdict(reactive[1])}
+                                                               if humans == "sfm" else {})}
     paper = [s for s in PAPER_SCENES if s in results["scenes"]]
     if paper:
         means = {k: [results["scenes"][s][k]["mean"] for s in paper]
@@ -245,9 +287,12 @@ def format_table(results: dict) -> str:
     """A plain-text table: one row per scene."""
     cols = [("success_rate", "success"), ("collision_rate", "collision"), ("timeout_rate", "timeout"),
             ("nav_time_s", "nav time s"), ("dangers_per_episode", "dangers/ep"), ("min_clearance", "min clear m")]
+    if any("crowd_offset_max_m" in r for r in results["scenes"].values()):  # protocol v2
+        cols += [("crowd_offset_max_m", "crowd offset m"), ("crowd_deviation_m", "crowd deviation m")]
     w = 24  # fits "10.620 [10.156,11.085]"
     head = f"{'scene':<13}" + "".join(f"{name:>{w}}" for _, name in cols)
     tag = "  [PRIVILEGED: knows the humans' future; an upper bound]" if results.get("privileged") else ""
+    tag += f"  humans: reactive {results['humans']}" if "humans" in results else ""
     lines = [f"policy: {results['policy']}  protocol: {results['protocol']}{tag}", head]
     for scene, r in results["scenes"].items():
         cells = []

@@ -13,6 +13,7 @@ from crowdbench.envs.humans.replay import NoCrowd, ReplayCrowd
 from crowdbench.envs.world import World
 
 ENVS = ("replay", "selfplay", "crowdnav")
+REPLAY_HUMANS = ("replay", "reactive_replay")
 
 
 def env_name(env_cfg) -> str:
@@ -32,13 +33,34 @@ def selfplay_config(env_cfg, **overrides):
     return SelfPlayConfig(**{**SelfPlayConfig.fields_of(env_cfg), **overrides})
 
 
-def replay_world(scene: str | Scene, batch: int, cfg: SimConfig | None = None):
-    """``(world, scenario)`` of protocol v1 on ``scene``: one robot, replayed humans."""
+def replay_world(scene: str | Scene, batch: int, cfg: SimConfig | None = None, reactive=None, sfm=None):
+    """``(world, scenario)`` on ``scene``: one robot among the recorded humans, replayed as recorded
+    (protocol v1) or, with ``reactive`` (a :class:`~crowdbench.envs.humans.reactive_replay.ReactiveParams`),
+    yielding to the robot (protocol v2; ``sfm``: the social-force parameters)."""
     from crowdbench.envs.scenarios import ReplayScenario, replay_scene
 
     cfg = cfg or SimConfig()
     scene = replay_scene(scene, cfg) if isinstance(scene, str) else scene
-    return World(batch, cfg, ReplayCrowd(scene, batch, cfg.time_limit)), ReplayScenario(scene, cfg)
+    if reactive is None:
+        crowd = ReplayCrowd(scene, batch, cfg.time_limit)
+    else:
+        from crowdbench.envs.humans.reactive_replay import ReactiveReplayCrowd
+
+        crowd = ReactiveReplayCrowd(scene, batch, cfg.time_limit, cfg.dt, cfg.human_radius, cfg.robot_radius, reactive, sfm)
+    return World(batch, cfg, crowd), ReplayScenario(scene, cfg)
+
+
+def replay_humans(env_cfg):
+    """The ``env.humans`` of the replay protocol: None (``replay``, as recorded) or the
+    :class:`~crowdbench.envs.humans.reactive_replay.ReactiveParams` of ``reactive_replay``."""
+    humans = str(env_cfg.get("humans", "replay"))
+    if humans not in REPLAY_HUMANS:
+        raise ValueError(f"unknown env.humans {humans!r} for env.name=replay; valid: {', '.join(REPLAY_HUMANS)}")
+    if humans == "replay":
+        return None
+    from crowdbench.envs.humans.reactive_replay import ReactiveParams
+
+    return ReactiveParams.of(env_cfg.get("reactive"))
 
 
 def selfplay_world(cfg, batch: int):
@@ -82,7 +104,7 @@ def make_world(env_cfg, batch: int, **overrides):
         return selfplay_world(cfg, batch)
     if name == "crowdnav":
         return crowdnav_world(cfg, batch)
-    return replay_world(str(env_cfg.scene), batch, cfg)
+    return replay_world(str(env_cfg.scene), batch, cfg, replay_humans(env_cfg))
 
 
 def make_env(cfg, progress_reward: float = 0.0, human_dropout: float = 0.0, extra=()):
@@ -115,11 +137,12 @@ def make_parallel_env(env_cfg, **overrides):
 
 
 def replay_env(scene: str = "students001", batch: int = 1, cfg: SimConfig | None = None, seed: int = 0,
-               episodes=None):
-    """The TorchRL env of protocol v1 on ``scene`` (``episodes``: an optional fixed list ``(t0 [E], angle [E])``)."""
+               episodes=None, reactive=None):
+    """The TorchRL env of protocol v1 on ``scene`` (``episodes``: an optional fixed list ``(t0 [E], angle [E])``;
+    ``reactive``: :class:`~crowdbench.envs.humans.reactive_replay.ReactiveParams` for protocol v2's humans)."""
     from crowdbench.envs.torchrl_env import CrowdEnv
 
-    world, scenario = replay_world(scene, batch, cfg)
+    world, scenario = replay_world(scene, batch, cfg, reactive)
     if episodes is not None and not isinstance(episodes, dict):
         episodes = scenario.episodes(*episodes)
     return CrowdEnv(world, scenario, seed=seed, episodes=episodes)

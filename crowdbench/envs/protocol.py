@@ -1,5 +1,9 @@
 """Start/goal sampling: the training sampler and the fixed, versioned evaluation episode lists.
 
+Protocol ``v2`` (docs/reactive_replay.md): the same episodes as v1 (start times, start and goal
+points), with the recorded humans replayed reactively (:mod:`crowdbench.envs.humans.reactive_replay`);
+its lists, under ``crowdbench/data/protocol_v2``, also fix the reactive models' parameters.
+
 Protocol ``v1`` (docs/protocol.md): for each evaluation scene, ``N`` episodes whose start
 times are spread evenly over the recording (every episode fits its full time limit) and
 whose start angles follow a golden-ratio sequence (low-discrepancy: any ``n`` consecutive
@@ -111,6 +115,66 @@ def load_episodes(scene_name: str) -> dict:
     if saved != generate_episodes(name, spec):
         raise ValueError(f"saved episode list {path} does not match its generator; the protocol changed")
     return saved
+
+
+# ---------------------------------------------------------------------------------- protocol v2
+V2 = "v2"
+V2_DIR = PROTOCOL_DIR.parent / f"protocol_{V2}"
+V2_MODELS = ("orca", "sfm")
+
+
+def v2_humans() -> dict:
+    """The reactive models' parameters protocol v2 fixes, per model."""
+    from dataclasses import asdict as _asdict
+
+    from crowdbench.envs.humans.reactive_replay import ReactiveParams
+    from crowdbench.envs.humans.sfm import SFMParams
+
+    return {"orca": ReactiveParams(model="orca").to_dict(),
+            "sfm": {**ReactiveParams(model="sfm").to_dict(), "social_force": _asdict(SFMParams())}}
+
+
+def generate_episodes_v2(scene_name: str) -> dict:
+    """Protocol v2's list of a scene: v1's episodes (regenerated, so the geometry is v1's by construction)
+    plus the reactive humans' parameters."""
+    v1 = generate_episodes(scene_name, ProtocolSpec())
+    return {"protocol": V2, "scene": v1["scene"], "spec": {**v1["spec"], "version": V2},
+            "humans": v2_humans(), "episodes": v1["episodes"]}
+
+
+def v2_path(scene_name: str) -> Path:
+    return V2_DIR / f"{check_scene(scene_name)}.json"
+
+
+def write_protocol_v2(scenes=EVAL_SCENES) -> list[Path]:
+    V2_DIR.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for s in scenes:
+        v2_path(s).write_text(json.dumps(generate_episodes_v2(s), indent=1) + "\n")
+        paths.append(v2_path(s))
+    return paths
+
+
+def load_episodes_v2(scene_name: str) -> dict:
+    """The saved ``v2`` list of a scene (errors if missing or if it no longer matches its generator)."""
+    path = v2_path(scene_name)
+    if not path.is_file():
+        raise FileNotFoundError(f"no saved {V2} episode list for scene {check_scene(scene_name)!r} at {path}")
+    saved = json.loads(path.read_text())
+    if saved != generate_episodes_v2(scene_name):
+        raise ValueError(f"saved episode list {path} does not match its generator; the protocol changed")
+    return saved
+
+
+def reactive_params(saved: dict, model: str):
+    """``(ReactiveParams, SFMParams)`` of ``model`` as a saved v2 list fixes them."""
+    from crowdbench.envs.humans.reactive_replay import ReactiveParams
+    from crowdbench.envs.humans.sfm import SFMParams
+
+    if model not in V2_MODELS:
+        raise ValueError(f"unknown reactive model {model!r}; valid: {', '.join(V2_MODELS)}")
+    p = dict(saved["humans"][model])
+    return ReactiveParams(**{k: v for k, v in p.items() if k != "social_force"}), SFMParams(**p.get("social_force", {}))
 
 
 class TrainSampler:

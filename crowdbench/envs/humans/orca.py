@@ -174,9 +174,10 @@ def _neighbor_key(d2: torch.Tensor, ok: torch.Tensor) -> torch.Tensor:
     return key.masked_fill(~ok, _NO_KEY)
 
 
-def _orca_lines(relx, rely, rvx, rvy, comb_r, vx, vy, inv_tau: float, inv_dt: float):
+def _orca_lines(relx, rely, rvx, rvy, comb_r, vx, vy, inv_tau: float, inv_dt: float, share: float = 0.5):
     """ORCA half-planes as ``[M, 4, B]`` (point x/y, unit direction x/y), as in
-    ``Agent::computeNewVelocity``. Rows of absent neighbours hold garbage (masked later)."""
+    ``Agent::computeNewVelocity``. Rows of absent neighbours hold garbage (masked later).
+    ``share``: the part of the avoidance this agent takes (RVO2: 0.5, reciprocal)."""
     # Selections are torch.lerp with 0/1 weights (exact, and several times cheaper than
     # torch.where on CPU); both branches are finite for every existing neighbour.
     dist_sq = relx * relx + rely * rely
@@ -209,4 +210,4 @@ def _orca_lines(relx, rely, rvx, rvy, comb_r, vx, vy, inv_tau: float, inv_dt: fl
     dy = torch.lerp(ldy, -ux, circle)
     ux = torch.lerp(proj * ldx - rvx, c_scale * ux, circle)
     uy = torch.lerp(proj * ldy - rvy, c_scale * uy, circle)
-    return torch.stack([vx + 0.5 * ux, vy + 0.5 * uy, dx, dy], dim=1)
+    return torch.stack([vx + share * ux, vy + share * uy, dx, dy], dim=1)

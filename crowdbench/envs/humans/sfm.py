@@ -201,15 +201,38 @@ def social_force_accelerations(
     if others_pos is not None and params.body_strength != 0.0:
         if others_radius is None:
             raise ValueError("others_radius is needed for the body repulsion (or set params.body_strength=0)")
-        rr = _as_field(others_radius, others_pos)
-        gx = pos[..., 0].unsqueeze(2) - others_pos[..., 0].unsqueeze(1)  # [N, M, R], robot -> human
-        gy = pos[..., 1].unsqueeze(2) - others_pos[..., 1].unsqueeze(1)
-        d = torch.hypot(gx, gy)
-        reach = _as_field(radius, pos).unsqueeze(2) + rr.unsqueeze(1)
         ok = (valid.unsqueeze(2) & others_valid.unsqueeze(1)).to(pos.dtype)
-        mag = ok * params.body_strength * torch.exp((reach - d) / params.body_range) / d.clamp_min(_EPS)
-        force = force + torch.stack(((mag * gx).sum(dim=2), (mag * gy).sum(dim=2)), dim=-1)
+        force = force + body_force(pos, radius, others_pos, others_radius, ok, params)
 
+    return torch.where(valid.unsqueeze(-1), force, torch.zeros_like(force))
+
+
+def body_force(pos, radius, others_pos, others_radius, weight, params: SFMParams) -> torch.Tensor:
+    """Helbing, Farkas & Vicsek's body repulsion [N, M, 2] on humans ``pos`` [N, M, 2] from bodies
+    ``others_pos`` [N, R, 2], each pair weighted by ``weight`` [N, M, R] (0 for absent pairs)."""
+    rr = _as_field(others_radius, others_pos)
+    gx = pos[..., 0].unsqueeze(2) - others_pos[..., 0].unsqueeze(1)  # [N, M, R], robot -> human
+    gy = pos[..., 1].unsqueeze(2) - others_pos[..., 1].unsqueeze(1)
+    d = torch.hypot(gx, gy)
+    reach = _as_field(radius, pos).unsqueeze(2) + rr.unsqueeze(1)
+    mag = weight * params.body_strength * torch.exp((reach - d) / params.body_range) / d.clamp_min(_EPS)
+    return torch.stack(((mag * gx).sum(dim=2), (mag * gy).sum(dim=2)), dim=-1)
+
+
+def robot_force(pos, vel, valid, radius, others_pos, others_vel, others_valid, others_radius,
+                params: SFMParams, cutoff: float) -> torch.Tensor:
+    """The force per mass [N, M, 2] that bodies ``others_*`` [N, R, ...] (the robots) exert on humans
+    ``pos/vel`` [N, M, 2], without the humans' goal force or their forces on each other: Moussaid's
+    interaction plus the body repulsion, from the bodies whose centre is within ``cutoff`` m only
+    (so that a far robot changes nothing, exactly)."""
+    gap2 = (pos.unsqueeze(2) - others_pos.unsqueeze(1)).square().sum(-1)  # [N, M, R]
+    near = valid.unsqueeze(2) & others_valid.unsqueeze(1) & (gap2 < cutoff * cutoff)
+    pos, vel = _clean(pos, valid), _clean(vel, valid)
+    others_pos, others_vel = _clean(others_pos, others_valid), _clean(others_vel, others_valid)
+    weight = near.to(pos.dtype)
+    force = _moussaid_sum(pos, vel, others_pos, others_vel, weight, params)
+    if params.body_strength != 0.0:
+        force = force + body_force(pos, radius, others_pos, others_radius, weight, params)
     return torch.where(valid.unsqueeze(-1), force, torch.zeros_like(force))
 
 
@@ -248,4 +271,4 @@ def social_force_velocities(
     return torch.where(valid.unsqueeze(-1), new_vel, torch.zeros_like(new_vel))
 
 
-__all__ = ["SFMParams", "social_force_accelerations", "social_force_velocities"]
+__all__ = ["SFMParams", "body_force", "robot_force", "social_force_accelerations", "social_force_velocities"]
