@@ -162,6 +162,7 @@ def cmd_leaderboard(args: list[str]) -> int:
     from crowdbench.envs.protocol import EVAL_SCENES
     from crowdbench.leaderboard import BLOCK_START, DEFAULT_ROOT, LAUNCHERS, run
     from crowdbench.leaderboard.render import blocks_in
+    from crowdbench.leaderboard.tracks import TRACK_ORDER, check_tracks
 
     ap = argparse.ArgumentParser(prog="crowdbench leaderboard",
                                  description="Validate and evaluate leaderboard submissions; regenerate the table.")
@@ -177,6 +178,8 @@ def cmd_leaderboard(args: list[str]) -> int:
     ap.add_argument("--launcher", choices=LAUNCHERS, default="local", help="local: a process pool of --jobs; "
                     "ray: one Ray task per submission (a local cluster of --jobs CPUs, or --address)")
     ap.add_argument("--address", default=None, help="--launcher ray: join this cluster (auto, ray://host:10001)")
+    ap.add_argument("--tracks", default=None, help="comma-separated tracks to evaluate (default all: "
+                    + ", ".join(TRACK_ORDER) + "); the others keep their cached results")
     ap.add_argument("--root", type=Path, default=None, help=f"leaderboard directory (default {DEFAULT_ROOT})")
     ap.add_argument("--readme", type=Path, default=None, help="also regenerate the results block of this file "
                     "(default: ./README.md when --root is not given and it has the block)")
@@ -207,8 +210,14 @@ def cmd_leaderboard(args: list[str]) -> int:
     if docs is None and a.root is None:
         docs = [p for p in (Path("docs/results.md"), Path("docs/reproduction.md"))
                 if p.is_file() and blocks_in(p.read_text())]
+    tracks = None
+    if a.tracks:
+        try:
+            tracks = check_tracks(t.strip() for t in a.tracks.split(",") if t.strip())
+        except ValueError as e:
+            ap.error(str(e))
     return run(a.root or DEFAULT_ROOT, a.only, a.check, a.force, a.episodes, scenes, jobs=a.jobs,
-               launcher=a.launcher, address=a.address, readme=readme, docs=docs)
+               launcher=a.launcher, address=a.address, readme=readme, docs=docs, tracks=tracks)
 
 
 def training_overrides(cfg: dict) -> list[str]:

@@ -18,7 +18,7 @@ from crowdbench.leaderboard import diff_rows, run
 from crowdbench.models import ENCODERS
 
 REPO = Path(__file__).resolve().parents[1]
-FAST = {"episodes": 2, "scenes": ["hotel"]}  # tests evaluate a subset (unofficial)
+FAST = {"episodes": 2, "scenes": ["hotel"], "tracks": ["v1"]}  # tests evaluate a subset (unofficial)
 
 
 def write_yaml(root: Path, name: str, text: str) -> Path:
@@ -28,12 +28,13 @@ def write_yaml(root: Path, name: str, text: str) -> Path:
     return d
 
 
-def toy_checkpoint(path: Path, encoder: dict, algo: str = "td3", actor_encoder: dict | None = None) -> None:
+def toy_checkpoint(path: Path, encoder: dict, algo: str = "td3", actor_encoder: dict | None = None,
+                   env: dict | None = None) -> None:
     """A tiny untrained actor saved in the training checkpoint format (state dicts + config)."""
     torch.manual_seed(0)
     actor = build_actor(algo, dict(actor_encoder or encoder), 1.0, squash="radial")
     cfg = {"algo": {"name": algo, "actor_squash": "radial"}, "encoder": dict(encoder),
-           "env": {"v_max": 1.0, "frame": "rotate"}}
+           "env": env or {"v_max": 1.0, "frame": "rotate"}}
     save_checkpoint(path, {"config": cfg, "actor": actor.state_dict(), "frames": 0})
 
 
@@ -430,7 +431,7 @@ def test_ray_fan_out_gives_the_sequential_numbers(tmp_path, monkeypatch):
     monkeypatch.setitem(ENCODERS, "boom", TinyEncoder)
     toy_checkpoint(d / "checkpoint.pt", {"name": "boom", "dim": 8})
     del ENCODERS["boom"]
-    fast = {"episodes": 3, "scenes": ["hotel"]}
+    fast = {"episodes": 3, "scenes": ["hotel"], "tracks": ["v1"]}
     outs = {}
     for launcher in ("local", "ray"):
         root = tmp_path / launcher

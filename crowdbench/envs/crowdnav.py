@@ -25,6 +25,7 @@ What differs from CrowdNav's simulator, and why:
 
 from __future__ import annotations
 
+import functools
 import hashlib
 from dataclasses import dataclass
 
@@ -106,6 +107,11 @@ def list_digest(episodes: dict[str, torch.Tensor]) -> str:
     return h.hexdigest()
 
 
+@functools.lru_cache(maxsize=16)  # making the 500 cases of 20 humans takes ~70 s: once per process
+def _test_list(scenario: str, n_humans: int, phase: str) -> dict[str, torch.Tensor]:
+    return _episodes(case_list(scenario, n_humans, CROWDNAV.size(phase), phase))
+
+
 class CrowdNavScenario:
     """CrowdNav circle or square crossing; episodes from CrowdNav's case seeding."""
 
@@ -117,7 +123,7 @@ class CrowdNavScenario:
     def test_list(self, phase: str = "test") -> dict[str, torch.Tensor]:
         """The fixed list of ``phase``: episode ``i`` is CrowdNav's case ``i`` (``case``); 500 test cases,
         100 validation cases (``phase="val"``, what training probes)."""
-        return _episodes(case_list(self.cfg.scenario, self.cfg.n_humans, CROWDNAV.size(phase), phase))
+        return {k: v.clone() for k, v in _test_list(self.cfg.scenario, self.cfg.n_humans, phase).items()}
 
     def cases(self, ids, phase: str = "test") -> dict[str, torch.Tensor]:
         return _episodes(_stack([crowdnav_case(int(i), self.cfg.scenario, self.cfg.n_humans, phase) for i in ids]))

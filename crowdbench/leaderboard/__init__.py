@@ -7,8 +7,9 @@ The command line is ``crowdbench leaderboard`` (crowdbench/cli.py); field refere
 docs/submitting.md.
 """
 
+from crowdbench.leaderboard.board import run
 from crowdbench.leaderboard.cache import EVAL_MODULES, HARNESS_VERSION, code_files, fingerprint
-from crowdbench.leaderboard.harness import LAUNCHERS, build_policy, run
+from crowdbench.leaderboard.harness import LAUNCHERS, build_policy
 from crowdbench.leaderboard.render import (
     BLOCK_END,
     BLOCK_START,

@@ -15,14 +15,15 @@ import hashlib
 import json
 from pathlib import Path
 
-from crowdbench.envs.protocol import PROTOCOL_DIR, PROTOCOL_VERSION
+from crowdbench.envs.protocol import PROTOCOL_DIR, PROTOCOL_VERSION, V2_DIR
 from crowdbench.leaderboard.schema import REPO_DIR, Submission, policy_params
+from crowdbench.leaderboard.tracks import TRACKS, Track, track_config
 from crowdbench.numerics import describe
 
 HARNESS_VERSION = 1
 # what evaluating a submission runs: the policy registry and the evaluation loop; every crowdbench
 # module these import (at any depth) is hashed into the cache fingerprint (code_files)
-EVAL_MODULES = ("crowdbench.eval", "crowdbench.policies", "crowdbench.algos.checkpoint", "crowdbench.models",
+EVAL_MODULES = ("crowdbench.eval", "crowdbench.eval_crowdnav", "crowdbench.policies", "crowdbench.algos.checkpoint", "crowdbench.models",
                 "crowdbench.baselines.oracle", "crowdbench.baselines.orca", "crowdbench.baselines.straight")
 
 
@@ -64,17 +65,20 @@ def code_files(roots=EVAL_MODULES) -> tuple[Path, ...]:
     return tuple(sorted(seen))
 
 
-def fingerprint(sub: Submission, scenes: list[str], episodes: int | None) -> str:
+def fingerprint(sub: Submission, scenes: list[str], episodes: int | None, track: Track = TRACKS["v1"]) -> str:
     # a baseline's arguments come from the config files (env dynamics, orca.* / oracle.*), not only its yaml
-    args = None if sub.kind == "learned" else policy_params(sub.yaml_path, sub.data)
+    args = None if sub.kind == "learned" else policy_params(sub.yaml_path, sub.data, track_config(track))
     h = hashlib.sha256()
     # the numerical path too: a result computed on other kernels (or another torch) is not this one
     h.update(json.dumps({"harness": HARNESS_VERSION, "protocol": PROTOCOL_VERSION, "scenes": scenes,
                          "episodes": episodes, "policy_args": args, "numerics": describe()}, sort_keys=True).encode())
+    if track.name != "v1":
+        h.update(json.dumps({"track": track.name}).encode())
     for p in [sub.yaml_path, *([sub.checkpoint] if sub.checkpoint else []), *sub.extra_files]:
         _sha(h, p)
-    for s in scenes:
-        _sha(h, PROTOCOL_DIR / f"{s}.json")
+    # the episode lists (CrowdNav's cases are made by code, hashed below)
+    for s in scenes if track.replay else []:
+        _sha(h, (V2_DIR if track.protocol == "v2" else PROTOCOL_DIR) / f"{s}.json")
     for f in code_files():
         _sha(h, f)
     return h.hexdigest()

@@ -26,18 +26,21 @@ from pathlib import Path
 import torch
 
 from crowdbench import policies
-from crowdbench.envs.protocol import EVAL_SCENES, PROTOCOL_VERSION
-from crowdbench.eval import evaluate
-from crowdbench.leaderboard import render
-from crowdbench.leaderboard.cache import HARNESS_VERSION, fingerprint
+from crowdbench.envs.protocol import EVAL_SCENES
+from crowdbench.leaderboard.cache import HARNESS_VERSION
 from crowdbench.leaderboard.schema import (
-    DEFAULT_ROOT,
     Submission,
     SubmissionError,
     baseline_args,
     policy_error,
-    read_submission,
     register_encoder,
+)
+from crowdbench.leaderboard.tracks import (
+    TRACKS,
+    Track,
+    evaluate_track,
+    track_config,
+    trained_track,
 )
 from crowdbench.numerics import PINNED
 
@@ -79,6 +82,10 @@ def _learned_policy(sub: Submission):
         raise SubmissionError(path, "encoder", f"{d['encoder']!r} but the checkpoint was trained with {c_enc!r}")
     if c_algo != d["algo"]:
         raise SubmissionError(path, "algo", f"{d['algo']!r} but the checkpoint was trained with {c_algo!r}")
+    home, got = d.get("track", "v1"), trained_track(cfg)
+    if got != home:
+        raise SubmissionError(path, "track", f"{home!r} but the checkpoint was trained on "
+                                             f"{repr(got) if got else 'an env that is no leaderboard track'}")
     try:
         policy = policies.from_checkpoint(sub.checkpoint)
     except policies.PolicyError as e:
@@ -94,35 +101,40 @@ def _learned_policy(sub: Submission):
     return policy
 
 
-def build_policy(sub: Submission):
+def build_policy(sub: Submission, track: Track = TRACKS["v1"]):
     """The :class:`~crowdbench.envs.policy.Policy` of a validated submission, built by the registry
-    (baselines and the oracle with the env config's dynamics, as ``crowdbench eval`` builds them)."""
+    (baselines and the oracle with ``track``'s env config, as ``crowdbench eval`` with it builds them)."""
     if sub.kind == "learned":
         policy = _learned_policy(sub)
     else:
         try:
-            policy = policies.build(*baseline_args(sub.data))
+            policy = policies.build(*baseline_args(sub.data, track_config(track)))
         except policies.PolicyError as e:
             raise policy_error(sub.yaml_path, e) from None
     policy.name = sub.name
     return policy
 
 
-def evaluate_submission(sub: Submission, policy, scenes: list[str], episodes: int | None, fp: str) -> dict:
-    """Run the protocol with ``crowdbench.eval.evaluate``; add per-episode outcome strings."""
+def evaluate_submission(sub: Submission, policy, scenes: list[str], episodes: int | None, fp: str,
+                        track: Track = TRACKS["v1"]) -> dict:
+    """Run ``track``'s protocol (the evaluation code ``crowdbench eval`` runs); add per-episode outcome strings."""
+    meta = {"submission": sub.name, "kind": sub.kind, "entry": sub.entry}
+    if track.name != "v1":  # (v1's results keep their pre-track layout)
+        meta.update(track=track.name, trained_on=sub.data.get("track", "v1") if sub.kind == "learned" else None)
     with tempfile.TemporaryDirectory() as tmp:
-        res = evaluate(policy, scenes, episodes, out_dir=Path(tmp), save_episodes=True,
-                       sim_overrides={"frame": policy.frame},
-                       meta={"submission": sub.name, "kind": sub.kind, "entry": sub.entry})
+        res = evaluate_track(track, policy, scenes, episodes, Path(tmp), meta)
         rows = [json.loads(line) for line in (Path(tmp) / "episodes.jsonl").read_text().splitlines()]
-    outcomes: dict[str, list] = {s: [] for s in scenes}
+    outcomes: dict[str, list] = {s: [] for s in res["scenes"]}
     for r in rows:
-        outcomes[r["scene"]].append((r["episode"], OUTCOME_CHAR[r["outcome"]]))
+        outcomes[r.get("scene", r.get("setting"))].append((r["episode"], OUTCOME_CHAR[r["outcome"]]))
     res["episode_ids"] = {s: [e for e, _ in v] for s, v in outcomes.items()}
     res["episode_outcomes"] = {s: "".join(c for _, c in v) for s, v in outcomes.items()}
     res["submission"] = sub.data
-    res["harness"] = {"version": HARNESS_VERSION, "scenes": scenes, "episodes": episodes,
-                      "official": episodes is None and set(scenes) == set(EVAL_SCENES), "fingerprint": fp}
+    res["harness"] = {"version": HARNESS_VERSION, "scenes": scenes if track.replay else [track.setting],
+                      "episodes": episodes, "official": episodes is None and (set(scenes) == set(EVAL_SCENES)
+                                                                            or not track.replay), "fingerprint": fp}
+    if track.name != "v1":
+        res["harness"]["track"] = track.name
     if sub.kind == "oracle":
         res["privileged"] = True
         res["unavoidable"] = unavoidable(res)
@@ -140,8 +152,8 @@ def unavoidable(res: dict) -> dict:
 
 
 # ---------------------------------------------------------------------------------- jobs
-def _job(sub: Submission, scenes: list[str], episodes: int | None, fp: str):
-    """Evaluate one validated submission: ``(results, seconds)`` or the :class:`SubmissionError`.
+def _job(sub: Submission, track: str, scenes: list[str], episodes: int | None, fp: str):
+    """Evaluate one validated submission on one track: ``(results, seconds)`` or the :class:`SubmissionError`.
 
     Single-threaded (``torch.set_num_threads(1)``) whatever the caller's setting, so the
     floating-point reductions, and hence the numbers, do not depend on the machine or ``--jobs``.
@@ -151,7 +163,8 @@ def _job(sub: Submission, scenes: list[str], episodes: int | None, fp: str):
     torch.set_num_threads(1)
     try:
         t = time.time()
-        res = evaluate_submission(sub, build_policy(sub), scenes, episodes, fp)
+        t_ = TRACKS[track]
+        res = evaluate_submission(sub, build_policy(sub, t_), scenes, episodes, fp, t_)
         return res, time.time() - t
     except SubmissionError as e:
         return e
@@ -175,15 +188,15 @@ def _absolute(sub: Submission) -> Submission:
 
 def _local(todo: list, scenes, episodes, jobs: int):
     if jobs <= 1 or len(todo) <= 1:
-        for _, sub, fp, _ in todo:
-            yield _job(sub, scenes, episodes, fp)
+        for _, sub, track, fp, _ in todo:
+            yield _job(sub, track, scenes, episodes, fp)
         return
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
     with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as pool:
-        futures = [pool.submit(_job, sub, scenes, episodes, fp) for _, sub, fp, _ in todo]
-        for (_, sub, _, _), fut in zip(todo, futures, strict=True):
+        futures = [pool.submit(_job, sub, track, scenes, episodes, fp) for _, sub, track, fp, _ in todo]
+        for (_, sub, _, _, _), fut in zip(todo, futures, strict=True):
             try:
                 yield fut.result()
             except Exception as e:  # noqa: BLE001 - a crashed worker process
@@ -211,8 +224,8 @@ def _ray(todo: list, scenes, episodes, jobs: int, address: str | None):
         # the workers evaluate with this process's numerical path (crowdbench/numerics.py), on any node
         pinned = {k: os.environ[k] for k in PINNED if k in os.environ}
         task = ray.remote(num_cpus=1, max_retries=0, runtime_env={"env_vars": pinned})(_job)
-        refs = [task.remote(_absolute(sub), scenes, episodes, fp) for _, sub, fp, _ in todo]
-        for (_, sub, _, _), ref in zip(todo, refs, strict=True):
+        refs = [task.remote(_absolute(sub), track, scenes, episodes, fp) for _, sub, track, fp, _ in todo]
+        for (_, sub, _, _, _), ref in zip(todo, refs, strict=True):
             try:
                 yield ray.get(ref)
             except Exception as e:  # noqa: BLE001 - the task raised or its worker died
@@ -224,130 +237,10 @@ def _ray(todo: list, scenes, episodes, jobs: int, address: str | None):
 
 def _evaluate_all(todo: list, scenes: list[str], episodes: int | None, jobs: int, launcher: str,
                   address: str | None):
-    """Yield ``(dir, submission, results path, (results, seconds) | SubmissionError)`` in ``todo`` order."""
+    """Yield ``(dir, submission, track, results path, (results, seconds) | SubmissionError)`` in ``todo`` order."""
     if launcher not in LAUNCHERS:
         raise ValueError(f"unknown launcher {launcher!r}; valid: {', '.join(LAUNCHERS)}")
     outs = _ray(todo, scenes, episodes, jobs, address) if launcher == "ray" and todo else \
         _local(todo, scenes, episodes, jobs)
-    for (d, sub, _, res_path), out in zip(todo, outs, strict=True):
-        yield d, sub, res_path, out
-
-
-# ---------------------------------------------------------------------------------- run
-def run(root: Path = DEFAULT_ROOT, only: list[str] | None = None, check: bool = False, force: bool = False,
-        episodes: int | None = None, scenes: list[str] | None = None, log=None, jobs: int = 1,
-        launcher: str = "local", address: str | None = None, readme: Path | None = None,
-        docs: list[Path] | None = None) -> int:
-    """Validate, evaluate and render; returns the exit code (0 ok, 1 a submission failed or --check differs).
-
-    ``readme``: a file whose block between the ``generated:results`` markers is regenerated too;
-    ``docs``: files whose generated blocks (``render.BLOCKS``, e.g. ``generated:docs-results`` of
-    docs/results.md) are regenerated too (None: no other file is touched)."""
-    root = Path(root)
-    log = log or (lambda msg: print(msg, flush=True))
-    scenes = list(scenes or EVAL_SCENES)
-    sub_root = root / "submissions"
-    dirs = sorted(p for p in sub_root.iterdir() if p.is_dir()) if sub_root.is_dir() else []
-    if not dirs:
-        log(f"crowdbench leaderboard: error: no submissions under {sub_root}")
-        return 1
-    names = [d.name for d in dirs]
-    unknown = [n for n in (only or []) if n not in names]
-    if unknown:
-        log(f"crowdbench leaderboard: error: unknown submission(s) {', '.join(unknown)}; known: {', '.join(names)}")
-        return 1
-    targets: list[tuple[Path, str]] = []  # (file, its text) whose generated blocks are rendered
-    for path, names in ([(readme, ["results"])] if readme is not None else []) + \
-            [(d, [n for n in render.BLOCKS if n != "results"]) for d in docs or []]:
-        path = Path(path)
-        text = path.read_text() if path.is_file() else ""
-        if not set(render.blocks_in(text)) & set(names):
-            start, end = render.markers(names[0])
-            log(f"crowdbench leaderboard: error: {path} has no {start} ... {end} block")
-            return 1
-        targets.append((path, text))
-    results, rejected, missing, todo = [], [], [], []
-    t_all = time.time()
-
-    def reject(e: SubmissionError) -> None:
-        log(f"crowdbench leaderboard: error: {e}")
-        rejected.append(str(e).replace(str(root.resolve()) + "/", "").replace(str(root) + "/", ""))
-
-    for d in dirs:
-        res_path = root / "results" / d.name / "results.json"
-        selected = only is None or d.name in only
-        try:
-            sub = read_submission(d)
-            if sub.kind == "learned":
-                register_encoder(sub)
-            fp = fingerprint(sub, scenes, episodes)
-            cached = json.loads(res_path.read_text()) if res_path.is_file() else None
-            fresh = cached is not None and cached.get("harness", {}).get("fingerprint") == fp
-            if not check and (fresh and not force or not selected):
-                if fresh:
-                    results.append(cached)
-                    if selected:
-                        log(f"{d.name}: unchanged, cached results ({res_path.relative_to(root)}); --force re-evaluates")
-                else:
-                    missing.append(f"{d.name}: results missing or out of date (`crowdbench leaderboard --only {d.name}`)")
-                continue
-            todo.append((d, sub, fp, res_path))
-        except SubmissionError as e:
-            reject(e)
-    outcomes = _evaluate_all(todo, scenes, episodes, jobs, launcher, address)
-    while True:
-        try:
-            d, sub, res_path, outcome = next(outcomes)
-        except StopIteration:
-            break
-        except LauncherError as e:
-            log(f"crowdbench leaderboard: error: {e}")
-            return 1
-        if isinstance(outcome, SubmissionError):
-            reject(outcome)
-            continue
-        res, seconds = outcome
-        log(f"{d.name}: evaluated in {seconds:.1f} s; average success (paper scenes) "
-            f"{render.fmt(res.get('average_paper_scenes', {}).get('success_rate'), 3)}")
-        results.append(res)
-        if not check:
-            res_path.parent.mkdir(parents=True, exist_ok=True)
-            res_path.write_text(json.dumps(res, indent=1) + "\n")
-            if sub.kind == "oracle":
-                (res_path.parent / "unavoidable.json").write_text(json.dumps(
-                    {"privileged": True, "note": "episodes the privileged oracle fails: candidate unavoidable",
-                     "protocol": PROTOCOL_VERSION, "scenes": res["unavoidable"]}, indent=1) + "\n")
-    rejected.sort()
-    failed = bool(rejected)
-    table = render.render_readme(results, rejected, scenes, episodes, missing)
-    log(f"leaderboard: {len(results)} evaluated/cached, {len(rejected)} rejected, {time.time() - t_all:.1f} s")
-    if check:
-        committed = (root / "README.md").read_text() if (root / "README.md").is_file() else ""
-        diffs = []
-        if committed != table:
-            diffs += render.diff_rows(committed, table) or ["(whitespace or layout)"]
-        for path, text in targets:
-            for name in render.blocks_in(text):
-                old, new = render.read_block(text, name), render.BLOCKS[name](results, scenes, episodes)
-                if old != new:
-                    where = f"{path}" if name == "results" else f"{path} ({name})"
-                    diffs += [f"{where}: {m}" for m in render.diff_rows(old, new) or ["(whitespace or layout)"]]
-        if diffs:
-            log("crowdbench leaderboard --check: FAILED: the generated text differs from a fresh evaluation in "
-                f"{len(diffs)} row(s):\n  " + "\n  ".join(diffs))
-            return 1
-        log("crowdbench leaderboard --check: README.md matches a fresh evaluation"
-            + (f" (and the generated blocks of {', '.join(str(p) for p, _ in targets)})" if targets else ""))
-        return 1 if failed else 0
-    (root / "README.md").write_text(table)
-    if results:
-        render.plot(results, scenes, root / "leaderboard.png")
-    wrote = [str(root / "README.md"), str(root / "leaderboard.png")]
-    for path, text in targets:
-        new = render.regenerate(text, results, scenes, episodes)
-        if new != text:
-            path.write_text(new)
-        wrote.append(f"the results block of {path}" if render.blocks_in(text) == ["results"] else
-                     f"the generated blocks of {path}")
-    log(f"wrote {', '.join(wrote)}")
-    return 1 if failed else 0
+    for (d, sub, track, _, res_path), out in zip(todo, outs, strict=True):
+        yield d, sub, track, res_path, out

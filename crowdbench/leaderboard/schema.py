@@ -15,6 +15,7 @@ from pathlib import Path
 import yaml
 
 from crowdbench import policies
+from crowdbench.leaderboard.tracks import TRACK_ORDER, trained_track
 
 PACKAGE_DIR = Path(__file__).resolve().parents[1]
 REPO_DIR = PACKAGE_DIR.parent
@@ -61,6 +62,7 @@ SCHEMA: dict[str, tuple[tuple, tuple, str]] = {
     "encoder_entry_points": ((str,), (), "entry-point group to load the encoder from, e.g. crowdbench.encoders"),
     "algo": ((str,), ("learned",), "td3 | ddpg | sac"),
     "experiment": ((str,), (), "the Hydra experiment config the run was trained with, e.g. leaderboard"),
+    "track": ((str,), (), "the track the entry was trained on (default v1): " + " | ".join(TRACK_ORDER)),
     "overrides": ((dict, list), (), "baseline/oracle parameters {key: value}; learned: the training overrides"),
     "authors": ((list, str), KINDS, "list of authors"),
     "link": ((str,), (), "paper or code URL"),
@@ -69,7 +71,7 @@ SCHEMA: dict[str, tuple[tuple, tuple, str]] = {
     "checkpoint": ((str,), (), "checkpoint file name inside the submission directory (default checkpoint.pt)"),
     "notes": ((str,), (), "free text"),
 }
-LEARNED_ONLY = ("encoder", "encoder_import", "encoder_entry_points", "algo", "checkpoint", "experiment")
+LEARNED_ONLY = ("encoder", "encoder_import", "encoder_entry_points", "algo", "checkpoint", "experiment", "track")
 
 
 def _type_name(types: tuple) -> str:
@@ -114,6 +116,8 @@ def validate_schema(path: Path, data) -> dict:
     if kind == "baseline" and data["policy"] not in BASELINE_POLICIES:
         raise SubmissionError(path, "policy", f"{data['policy']!r} is not a baseline; valid: "
                                               f"{', '.join(BASELINE_POLICIES)}")
+    if kind == "learned" and data.get("track", "v1") not in TRACK_ORDER:
+        raise SubmissionError(path, "track", f"{data['track']!r} is not a track; valid: {', '.join(TRACK_ORDER)}")
     if kind == "learned" and data["algo"] not in ALGOS:
         raise SubmissionError(path, "algo", f"{data['algo']!r} is not one of {', '.join(ALGOS)}")
     if kind != "learned":
@@ -128,21 +132,22 @@ def validate_schema(path: Path, data) -> dict:
     return data
 
 
-def baseline_args(data: dict) -> tuple[str, dict, dict]:
+def baseline_args(data: dict, cfg: dict | None = None) -> tuple[str, dict, dict]:
     """``(name, cfg, overrides)`` for ``crowdbench.policies.build`` of a baseline / oracle submission:
-    the default config (env dynamics, ``orca.*`` / ``oracle.*``) with the submission's seed."""
+    ``cfg`` (a track's composed config; default: the default config: env dynamics, ``orca.*`` /
+    ``oracle.*``) with the submission's seed."""
     name = "oracle" if data["kind"] == "oracle" else data["policy"]
-    return name, {**policies.default_config(), "seed": data.get("seed", 0)}, data.get("overrides") or {}
+    return name, {**(cfg or policies.default_config()), "seed": data.get("seed", 0)}, data.get("overrides") or {}
 
 
 def policy_error(path: Path, e: policies.PolicyError) -> SubmissionError:
     return SubmissionError(path, f"overrides.{e.key}" if e.key else "overrides", str(e))
 
 
-def policy_params(path: Path, data: dict) -> dict:
+def policy_params(path: Path, data: dict, cfg: dict | None = None) -> dict:
     """Constructor arguments of a baseline / oracle submission; an unknown override names its key."""
     try:
-        return policies.params(*baseline_args(data))
+        return policies.params(*baseline_args(data, cfg))
     except policies.PolicyError as e:
         raise policy_error(path, e) from None
 
@@ -190,7 +195,9 @@ def make_submission(run_dir: Path, name: str, entry: str, authors: list[str], ov
     save_checkpoint(sub_dir / "checkpoint.pt", {k: state[k] for k in keep if k in state})
     data = {"name": name, "kind": "learned", "entry": entry, "encoder": cfg["encoder"]["name"],
             "algo": cfg["algo"]["name"], "seed": int(cfg["seed"]), "overrides": overrides, "authors": authors}
-    for key, value in (("experiment", experiment), ("link", link), ("notes", notes)):
+    track = trained_track(cfg)
+    for key, value in (("experiment", experiment), ("track", None if track == "v1" else track), ("link", link),
+                       ("notes", notes)):
         if value:
             data[key] = value
     (sub_dir / "submission.yaml").write_text(yaml.safe_dump(data, sort_keys=False, width=120))

@@ -1,0 +1,200 @@
+"""The leaderboard run: validate every submission, evaluate it on every track it fits (cached by
+fingerprint), write the results and regenerate the tables; ``--check`` re-evaluates and compares.
+
+Results: ``leaderboard/results/<name>/results.json`` (track v1, the layout from before tracks) and
+``leaderboard/results/<name>/<track>.json``. Tables: ``leaderboard/README.md`` (protocol v1: the
+baselines, the oracle and the entries trained on v1; plus the generated blocks of the README and the
+docs) and ``leaderboard/TRACKS.md`` (every track, and the transfer table).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+from crowdbench.envs.protocol import EVAL_SCENES, PROTOCOL_VERSION
+from crowdbench.leaderboard import render
+from crowdbench.leaderboard.cache import fingerprint
+from crowdbench.leaderboard.harness import LauncherError, _evaluate_all
+from crowdbench.leaderboard.schema import DEFAULT_ROOT, SubmissionError, read_submission, register_encoder
+from crowdbench.leaderboard.track_tables import render_tracks, trained_on
+from crowdbench.leaderboard.tracks import TRACK_ORDER, TRACKS, check_tracks
+
+TRACKS_FILE = "TRACKS.md"
+
+
+def _tag(sub: str, track: str) -> str:
+    return sub if track == "v1" else f"{sub} ({track})"
+
+
+def _targets(readme, docs, log) -> list[tuple[Path, str]] | None:
+    """``(file, text)`` whose generated v1 blocks are rendered; None (after logging) if one lacks its block."""
+    targets = []
+    for path, names in ([(readme, ["results"])] if readme is not None else []) + \
+            [(d, [n for n in render.BLOCKS if n != "results"]) for d in docs or []]:
+        path = Path(path)
+        text = path.read_text() if path.is_file() else ""
+        if not set(render.blocks_in(text)) & set(names):
+            start, end = render.markers(names[0])
+            log(f"crowdbench leaderboard: error: {path} has no {start} ... {end} block")
+            return None
+        targets.append((path, text))
+    return targets
+
+
+def run(root: Path = DEFAULT_ROOT, only: list[str] | None = None, check: bool = False, force: bool = False,
+        episodes: int | None = None, scenes: list[str] | None = None, log=None, jobs: int = 1,
+        launcher: str = "local", address: str | None = None, readme: Path | None = None,
+        docs: list[Path] | None = None, tracks: list[str] | None = None) -> int:
+    """Validate, evaluate and render; returns the exit code (0 ok, 1 a submission failed or --check differs).
+
+    ``tracks``: the tracks evaluated (default all; the others keep their cached results, and ``--check``
+    compares only their tables). ``readme``: a file whose block between the ``generated:results``
+    markers is regenerated too; ``docs``: files whose generated blocks (``render.BLOCKS``) are
+    regenerated too (None: no other file is touched). Both are protocol v1's."""
+    root = Path(root)
+    log = log or (lambda msg: print(msg, flush=True))
+    scenes = list(scenes or EVAL_SCENES)
+    try:
+        tracks = check_tracks(tracks)
+    except ValueError as e:
+        log(f"crowdbench leaderboard: error: {e}")
+        return 1
+    sub_root = root / "submissions"
+    dirs = sorted(p for p in sub_root.iterdir() if p.is_dir()) if sub_root.is_dir() else []
+    if not dirs:
+        log(f"crowdbench leaderboard: error: no submissions under {sub_root}")
+        return 1
+    names = [d.name for d in dirs]
+    unknown = [n for n in (only or []) if n not in names]
+    if unknown:
+        log(f"crowdbench leaderboard: error: unknown submission(s) {', '.join(unknown)}; known: {', '.join(names)}")
+        return 1
+    targets = _targets(readme, docs, log) if "v1" in tracks else []
+    if targets is None:
+        return 1
+    results: dict[str, list[dict]] = {t: [] for t in TRACK_ORDER}
+    rejected: list[tuple[str | None, str]] = []  # (track or None for every track, message)
+    missing: list[tuple[str, str]] = []
+    todo = []
+    t_all = time.time()
+
+    def reject(e: SubmissionError, track: str | None) -> None:
+        log(f"crowdbench leaderboard: error: {e}" + (f" (track {track})" if track else ""))
+        rejected.append((track, str(e).replace(str(root.resolve()) + "/", "").replace(str(root) + "/", "")))
+
+    for d in dirs:
+        try:
+            sub = read_submission(d)
+            if sub.kind == "learned":
+                register_encoder(sub)
+        except SubmissionError as e:
+            reject(e, None)
+            continue
+        for name in TRACK_ORDER:
+            track = TRACKS[name]
+            if not track.fits(sub.kind) or (check and name not in tracks):
+                continue
+            res_path = root / "results" / d.name / track.results_file
+            selected = (only is None or d.name in only) and name in tracks
+            try:
+                fp = fingerprint(sub, scenes, episodes, track)
+            except SubmissionError as e:
+                reject(e, None)
+                break
+            cached = json.loads(res_path.read_text()) if res_path.is_file() else None
+            fresh = cached is not None and cached.get("harness", {}).get("fingerprint") == fp
+            if not check and (fresh and not force or not selected):
+                if fresh:
+                    results[name].append(cached)
+                    if selected:
+                        log(f"{_tag(d.name, name)}: unchanged, cached results; --force re-evaluates")
+                else:
+                    missing.append((name, (f"{d.name} ({name}): results missing or out of date "
+                                          f"(`crowdbench leaderboard --only {d.name} --tracks {name}`)")))
+                continue
+            todo.append((d, sub, name, fp, res_path))
+    outcomes = _evaluate_all(todo, scenes, episodes, jobs, launcher, address)
+    while True:
+        try:
+            d, sub, name, res_path, outcome = next(outcomes)
+        except StopIteration:
+            break
+        except LauncherError as e:
+            log(f"crowdbench leaderboard: error: {e}")
+            return 1
+        if isinstance(outcome, SubmissionError):
+            reject(outcome, name)
+            continue
+        res, seconds = outcome
+        head = "average success (paper scenes)" if TRACKS[name].replay else "success"
+        value = res.get("average_paper_scenes", {}).get("success_rate") if TRACKS[name].replay else \
+            res["scenes"][TRACKS[name].setting]["success_rate"]["mean"]
+        log(f"{_tag(d.name, name)}: evaluated in {seconds:.1f} s; {head} {render.fmt(value, 3)}")
+        results[name].append(res)
+        if not check:
+            res_path.parent.mkdir(parents=True, exist_ok=True)
+            res_path.write_text(json.dumps(res, indent=1) + "\n")
+            if sub.kind == "oracle" and name == "v1":
+                (res_path.parent / "unavoidable.json").write_text(json.dumps(
+                    {"privileged": True, "note": "episodes the privileged oracle fails: candidate unavoidable",
+                     "protocol": PROTOCOL_VERSION, "scenes": res["unavoidable"]}, indent=1) + "\n")
+    failed = bool(rejected)
+    v1 = [r for r in results["v1"] if trained_on(r) in (None, "v1")]
+    v1_rejected = sorted(m for t, m in rejected if t in (None, "v1"))
+    v1_missing = [m for t, m in missing if t == "v1"]
+    table = render.render_readme(v1, v1_rejected, scenes, episodes, v1_missing)
+    shown = {t: results[t] for t in TRACK_ORDER if t in tracks or results[t]}
+    board = render_tracks(shown, scenes, episodes, [m for _, m in missing],
+                          sorted(f"{m} (track {t})" if t else m for t, m in rejected))
+    log(f"leaderboard: {sum(map(len, results.values()))} results evaluated/cached on {len(tracks)} track(s), "
+        f"{len(rejected)} rejected, {time.time() - t_all:.1f} s")
+    if check:
+        return _check(root, tracks, table, board, targets, v1, scenes, episodes, log) or (1 if failed else 0)
+    wrote = []
+    if "v1" in tracks:
+        (root / "README.md").write_text(table)
+        if v1:
+            render.plot(v1, scenes, root / "leaderboard.png")
+        wrote += [str(root / "README.md"), str(root / "leaderboard.png")]
+        for path, text in targets:
+            new = render.regenerate(text, v1, scenes, episodes)
+            if new != text:
+                path.write_text(new)
+            wrote.append(f"the results block of {path}" if render.blocks_in(text) == ["results"] else
+                         f"the generated blocks of {path}")
+    (root / TRACKS_FILE).write_text(board)
+    wrote.append(str(root / TRACKS_FILE))
+    log(f"wrote {', '.join(wrote)}")
+    return 1 if failed else 0
+
+
+def _check(root: Path, tracks: list[str], table: str, board: str, targets, v1, scenes, episodes, log) -> int:
+    """Compare the generated text of the checked tracks with the committed files; 1 if anything differs."""
+    diffs = []
+    if "v1" in tracks:
+        committed = (root / "README.md").read_text() if (root / "README.md").is_file() else ""
+        if committed != table:
+            diffs += render.diff_rows(committed, table) or ["(whitespace or layout)"]
+        for path, text in targets:
+            for name in render.blocks_in(text):
+                old, new = render.read_block(text, name), render.BLOCKS[name](v1, scenes, episodes)
+                if old != new:
+                    where = f"{path}" if name == "results" else f"{path} ({name})"
+                    diffs += [f"{where}: {m}" for m in render.diff_rows(old, new) or ["(whitespace or layout)"]]
+    path = root / TRACKS_FILE
+    committed = path.read_text() if path.is_file() else ""
+    blocks = [f"track-{t}" for t in tracks] + (["transfer"] if len(tracks) == len(TRACK_ORDER) else [])
+    for name in blocks:
+        old = render.read_block(committed, name) if render.markers(name)[0] in committed else ""
+        new = render.read_block(board, name)
+        if old != new:
+            diffs += [f"{TRACKS_FILE} ({name}): {m}" for m in render.diff_rows(old, new) or ["(whitespace or layout)"]]
+    if diffs:
+        log("crowdbench leaderboard --check: FAILED: the generated text differs from a fresh evaluation in "
+            f"{len(diffs)} row(s):\n  " + "\n  ".join(diffs))
+        return 1
+    log(f"crowdbench leaderboard --check: every table of track(s) {', '.join(tracks)} matches a fresh evaluation"
+        + (f" (and the generated blocks of {', '.join(str(p) for p, _ in targets)})" if targets else ""))
+    return 0

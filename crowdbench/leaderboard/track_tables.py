@@ -1,0 +1,123 @@
+"""The generated ``leaderboard/TRACKS.md``: one table per track and the transfer table. Pure functions of
+the results; each table sits between ``generated:track-<name>`` (``generated:transfer``) markers so that
+``--check`` of a subset of the tracks compares the tables of those tracks only."""
+
+from __future__ import annotations
+
+from crowdbench.envs.protocol import PAPER_SCENES
+from crowdbench.leaderboard.render import (
+    average_cell,
+    fmt,
+    group_results,
+    label,
+    markers,
+    metric_table,
+    scene_cell,
+    seed_cell,
+)
+from crowdbench.leaderboard.tracks import TRACK_ORDER, TRACKS, Track
+
+SUMMARY = [("success_rate", "success", 3), ("collision_rate", "collision", 3), ("timeout_rate", "timeout", 3),
+           ("nav_time_s", "nav time s", 2), ("dangers_per_episode", "dangers/ep", 3),
+           ("min_clearance", "min clearance m", 3)]
+CROWD = [("crowd_offset_max_m", "crowd offset m", 3), ("crowd_deviation_m", "crowd deviation m", 3)]
+
+
+def trained_on(r: dict) -> str | None:
+    """The track a learned result's entry was trained on; None for baselines and the oracle."""
+    return r["submission"].get("track", "v1") if r["meta"]["kind"] == "learned" else None
+
+
+def headline(r: dict, track: Track, metric: str, digits: int) -> tuple[float | None, str]:
+    """A run's figure on a track: the paper-scene average (replay tracks) or the setting's value (CrowdNav)."""
+    if not track.replay:
+        return scene_cell(r, track.setting, metric, digits)
+    if all(s in r["scenes"] for s in PAPER_SCENES):
+        return average_cell(r, metric, digits)
+    vals = [v[metric]["mean"] for v in r["scenes"].values()]  # an unofficial scene subset: their plain mean
+    if not vals or None in vals:
+        return None, "—"
+    return sum(vals) / len(vals), fmt(sum(vals) / len(vals), digits)
+
+
+def group_cell(g: list[dict], track: Track, metric: str, digits: int) -> tuple[float | None, str]:
+    if len(g) == 1:
+        return headline(g[0], track, metric, digits)
+    return seed_cell([headline(r, track, metric, digits)[0] for r in g], digits)
+
+
+def track_table(track: Track, results: list[dict], scenes: list[str]) -> list[str]:
+    """Baselines, the oracle (where it applies) and the entries trained on ``track``."""
+    home = [r for r in results if trained_on(r) in (None, track.name)]
+    groups = group_results(home)
+    cols = SUMMARY + (CROWD if track.protocol == "v2" else [])
+    where = "average over the four paper scenes" if track.replay else f"CrowdNav's test cases of {track.setting}"
+    L = [f"## `{track.name}`: {track.title}", "",
+         f"Each cell: {where}; a single run shows its 95% interval, several seeds mean ± sd."
+         + ("" if track.privileged_ok else " The oracle does not apply: these humans react to the robot, so "
+            "their future is not known in advance."), ""]
+    head = ["method", "trained on", "seeds", *(c[1] for c in cols)]
+    L += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for g in groups:
+        origin = trained_on(g[0]) or "—"
+        cells = [label(g), origin, str(len(g))] + [group_cell(g, track, m, d)[1] for m, _, d in cols]
+        L.append("| " + " | ".join(cells) + " |")
+    if track.replay and len(scenes) > 1:
+        L += ["", "Success rate per scene:", "", *metric_table(groups, scenes, "success_rate", 3)]
+    return L
+
+
+def transfer_table(by_track: dict[str, list[dict]]) -> list[str]:
+    """Every learned entry (mean ± sd over seeds) on every track; bold: the track it was trained on."""
+    entries: dict[tuple[str, str], dict[str, list[dict]]] = {}  # (label, trained on): one label may be trained twice
+    for name, results in by_track.items():
+        for r in results:
+            if trained_on(r) is not None:
+                entries.setdefault((r["meta"]["entry"], trained_on(r)), {}).setdefault(name, []).append(r)
+    tracks = [t for t in TRACK_ORDER if t in by_track]
+    head = ["method", "trained on", "seeds", *(f"`{t}`" for t in tracks)]
+    L = ["## Transfer: success of every learned entry on every track", "",
+         ("Replay tracks: average over the four paper scenes; CrowdNav tracks: its test cases. Mean ± sd over "
+         "seeds; **bold**: the track the entry was trained on."), "",
+         "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    rows = []
+    for (entry, origin), per in entries.items():
+        seeds = max(len(v) for v in per.values())
+        cells = []
+        for t in tracks:
+            g = sorted(per.get(t, []), key=lambda r: r["meta"]["submission"])
+            c = group_cell(g, TRACKS[t], "success_rate", 3)[1] if g else "—"
+            cells.append(f"**{c}**" if t == origin and c != "—" else c)
+        rows.append((TRACK_ORDER.index(origin), entry.lower(), [entry, f"`{origin}`", str(seeds), *cells]))
+    L += ["| " + " | ".join(c) + " |" for *_, c in sorted(rows)]
+    return L
+
+
+def block(name: str, lines: list[str]) -> str:
+    start, end = markers(name)
+    return "\n".join([start, *lines, end])
+
+
+def render_tracks(by_track: dict[str, list[dict]], scenes: list[str], episodes: int | None,
+                  missing: list[str], rejected: list[str]) -> str:
+    """The whole ``leaderboard/TRACKS.md``."""
+    L = [("<!-- GENERATED by `crowdbench leaderboard` from leaderboard/results/*/*.json: DO NOT EDIT BY HAND. "
+         "`crowdbench leaderboard --check` fails if a table differs from a fresh evaluation. -->"), "",
+         "# crowdbench leaderboard: every track", "",
+         ("Every entry evaluated by the harness on every track it fits (docs/submitting.md, \"Tracks\"). "
+         "Protocol v1's full tables are in [README.md](README.md)."), ""]
+    if episodes is not None or set(PAPER_SCENES) - set(scenes):
+        L += [f"**Unofficial subset**: scenes {', '.join(scenes)}, episodes {episodes or 'all'}.", ""]
+    for name in TRACK_ORDER:
+        if name in by_track:
+            L += [block(f"track-{name}", track_table(TRACKS[name], by_track[name], scenes)), ""]
+    if len(by_track) == len(TRACK_ORDER):
+        L += [block("transfer", transfer_table(by_track)), ""]
+    if missing:
+        L += ["## Not evaluated", "", *(f"- {m}" for m in missing), ""]
+    if rejected:
+        L += ["## Rejected", "", *(f"- {m}" for m in rejected), ""]
+    return "\n".join(L)
+
+
+__all__ = ["fmt", "render_tracks", "track_table", "trained_on", "transfer_table"]
