@@ -26,7 +26,8 @@ def test_a_shipped_format_1_checkpoint_loads_with_the_upgraded_config():
     raw = torch.load(SHIPPED, map_location="cpu", weights_only=True)
     assert raw["format"] == LEGACY_TAG and "per_weights" not in raw["config"]["algo"]  # really format 1
     state = load_checkpoint(SHIPPED)
-    assert state["format"] == FORMAT == 2
+    assert state["format"] == FORMAT == 3
+    assert state["config"]["env"]["humans"] == "replay"  # format 3: trained among the humans as recorded
     algo = state["config"]["algo"]
     assert algo["per_weights"] is False
     assert algo["actor_squash"] == raw["config"]["algo"]["actor_squash"]  # stored values are kept
@@ -44,6 +45,17 @@ def test_a_shipped_format_1_checkpoint_loads_with_the_upgraded_config():
     td = replay_env("students003", batch=8, seed=0).reset()
     with torch.no_grad():
         assert torch.equal(policy.act(td), ref(td.clone(False))["agents", "action"])
+
+
+def test_format_2_reactive_run_keeps_its_humans(tmp_path):
+    """Format 2 -> 3 fills env.humans only where it is missing: a reactive-replay run stays one."""
+    env = {"name": "replay", "humans": "reactive_replay", "reactive": {"model": "sfm"}}
+    torch.save({"format": 2, "config": {"env": dict(env), "algo": {}, "train": {}}, "actor": {}, "frames": 0},
+               tmp_path / "r.pt")
+    assert load_checkpoint(tmp_path / "r.pt")["config"]["env"] == env
+    torch.save({"format": 2, "config": {"env": {"name": "crowdnav"}, "algo": {}, "train": {}}, "actor": {},
+                "frames": 0}, tmp_path / "c.pt")
+    assert load_checkpoint(tmp_path / "c.pt")["config"]["env"] == {"name": "crowdnav"}  # not a replay run
 
 
 def test_every_shipped_checkpoint_loads():
@@ -66,6 +78,7 @@ def test_format_1_defaults(tmp_path):
         ("gaussian", 1, 0.0, 0.0)
     assert state["wall_time_s"] == 0.0
     assert torch.equal(state["replay_rng"], torch.Generator().manual_seed(3).get_state())
+    assert state["config"]["env"]["humans"] == "replay" and state["config"]["env"]["reactive"]["model"] == "orca"
     save_checkpoint(tmp_path / "new.pt", state)  # re-saved: the current format, no upgrade needed
     again = torch.load(tmp_path / "new.pt", map_location="cpu", weights_only=True)
     assert again["format"] == FORMAT and again["config"] == state["config"]

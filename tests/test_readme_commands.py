@@ -63,9 +63,13 @@ INVOCATIONS: dict[str, list[list[str]]] = {
     "crowdbench submit SWEEP_DIR": [["submit", "{sweep}", "--root", "{lb}"]],
     "crowdbench submit RUN --name NAME --entry LABEL":
         [["submit", "{run}", "--name", "tiny_run", "--entry", "tiny TD3", "--root", "{lb}"]],
-    "crowdbench leaderboard": [["leaderboard", "--root", "{lb}", "--episodes", "2", "--scenes", "hotel", "--jobs", "2"]],
+    "crowdbench leaderboard": [["leaderboard", "--root", "{lb}", "--episodes", "2", "--scenes", "hotel", "--jobs", "2",
+                                "--tracks", "v1"]],  # every track: tests/test_tracks.py
     "crowdbench leaderboard --check":
-        [["leaderboard", "--check", "--root", "{lb}", "--episodes", "2", "--scenes", "hotel", "--jobs", "2"]],
+        [["leaderboard", "--check", "--root", "{lb}", "--episodes", "2", "--scenes", "hotel", "--jobs", "2",
+          "--tracks", "v1"]],
+    "crowdbench leaderboard --tracks v1,v2-orca":
+        [["leaderboard", "--tracks", "v1,v2-orca", "--root", "{lb}", "--episodes", "2", "--scenes", "hotel"]],
     "crowdbench run env=selfplay algo=td3 encoder=gatedgcn":
         [["run", "env=selfplay", "algo=td3", "encoder=gatedgcn", "env.n_agents=4", *SELFPLAY, "out={selfplay}"]],
     "crowdbench run env=selfplay env.n_agents=16 env.scenario=square env.background=students001":
@@ -83,6 +87,10 @@ INVOCATIONS: dict[str, list[list[str]]] = {
           "env.humans=sfm", "env.robot_visible=true", "env.eval_episodes=2"]],
     "crowdbench run env=crowdnav algo=td3 encoder=gatedgcn":
         [["run", "env=crowdnav", "algo=td3", "encoder=gatedgcn", *RUN, "env.eval_episodes=2"]],
+    "crowdbench eval env.humans=reactive_replay policy=orca\\|straight\\|RUN/checkpoint.pt":
+        [["eval", "env.humans=reactive_replay", f"policy={p}", *EVAL] for p in ("orca", "straight", "{run}/checkpoint.pt")],
+    "crowdbench run env.humans=reactive_replay algo=td3 encoder=gatedgcn":
+        [["run", "env.humans=reactive_replay", "algo=td3", "encoder=gatedgcn", *RUN]],
     "crowdbench eval ... viz.record=true [viz.episodes=[0,21]] [viz.scenes=[students003]]":
         [["eval", "policy=straight", "viz.record=true", "viz.episodes=[0,249]", "viz.scenes=[hotel]", *EVAL,
           "out={tmp}/viz_eval"]],

@@ -20,7 +20,7 @@ REQUIRED = ("config", "actor", "frames")
 # 0.1.0) wrote the string tag LEGACY_TAG instead; its configs may lack keys added since, which
 # :func:`upgrade` fills with the values the format-1 code used. Bump FORMAT when a change to the
 # saved fields or config needs an upgrade step, and add that step to UPGRADES.
-FORMAT = 2
+FORMAT = 3
 LEGACY_TAG = "crowdbench-checkpoint-v1"
 
 
@@ -46,7 +46,19 @@ def _upgrade_1(state: dict) -> dict:
     return state
 
 
-UPGRADES = {1: _upgrade_1}  # format n -> n + 1
+def _upgrade_2(state: dict) -> dict:
+    """Format 2 -> 3: ``env.humans`` (and ``env.reactive``) appeared with reactive replay; a replay run
+    before it trained among the humans as recorded."""
+    env = state["config"].setdefault("env", {})
+    if env.get("name", "replay") == "replay":
+        from crowdbench.envs.humans.reactive_replay import ReactiveParams
+
+        env.setdefault("humans", "replay")
+        env.setdefault("reactive", ReactiveParams().to_dict())
+    return state
+
+
+UPGRADES = {1: _upgrade_1, 2: _upgrade_2}  # format n -> n + 1
 
 
 def upgrade(state: dict, version: int) -> dict:
