@@ -15,24 +15,14 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import time
 
 import torch
+from bench_crowd import timed  # (run as a script: benchmarks/ is on the path)
 
 from crowdbench.envs.core import RUNNING, SimConfig
 from crowdbench.envs.factory import replay_world
 from crowdbench.envs.humans.reactive_replay import ReactiveParams
 from crowdbench.envs.torchrl_env import CrowdEnv
-
-
-def timed(fn, seconds: float, warm: int = 3) -> tuple[int, float]:
-    for _ in range(warm):
-        fn()
-    n, t0 = 0, time.perf_counter()
-    while n < 2 or time.perf_counter() - t0 < seconds:
-        fn()
-        n += 1
-    return n, time.perf_counter() - t0
 
 
 def robot_action(kind: str, world, gen: torch.Generator) -> torch.Tensor:

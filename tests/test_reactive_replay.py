@@ -172,3 +172,25 @@ def test_reactive_params_errors_name_the_key():
         ReactiveParams(horizon=0.0)
     with pytest.raises(ValueError, match="env.reactive key.*speed"):
         ReactiveParams.of({"speed": 2})
+
+
+def test_protocol_v2_lists_are_v1_episodes_regenerated_and_compared(tmp_path, monkeypatch):
+    import json
+
+    from crowdbench.envs import protocol
+    from crowdbench.envs.protocol import EVAL_SCENES, load_episodes, load_episodes_v2, reactive_params
+
+    for scene in EVAL_SCENES:
+        v2 = load_episodes_v2(scene)  # regenerated and compared inside
+        assert v2["protocol"] == "v2" and v2["episodes"] == load_episodes(scene)["episodes"]
+        assert reactive_params(v2, "orca")[0] == ReactiveParams(model="orca")
+        assert reactive_params(v2, "sfm")[0] == ReactiveParams(model="sfm")
+    # a list edited by hand (or a changed default) is refused
+    saved = json.loads(protocol.v2_path("eth").read_text())
+    saved["humans"]["orca"]["horizon"] = 2.0
+    monkeypatch.setattr(protocol, "V2_DIR", tmp_path)
+    (tmp_path / "eth.json").write_text(json.dumps(saved))
+    with pytest.raises(ValueError, match="does not match its generator"):
+        load_episodes_v2("eth")
+    with pytest.raises(FileNotFoundError, match="no saved v2 episode list for scene 'hotel'"):
+        load_episodes_v2("hotel")

@@ -16,6 +16,8 @@ from crowdbench.envs.torchrl_env import CrowdEnv
 
 COMBOS = {  # scenario x crowd model: the env config overrides that select it
     "replay-v1": ["env=replay"],
+    "reactive-replay-orca": ["env=replay", "env.humans=reactive_replay"],
+    "reactive-replay-sfm": ["env=replay", "env.humans=reactive_replay", "env.reactive.model=sfm"],
     "selfplay-none": ["env=selfplay", "env.n_agents=3"],
     "selfplay-replay": ["env=selfplay", "env.n_agents=3", "env.background=students001"],
     "selfplay-orca": ["env=selfplay", "env.n_agents=3", "env.n_humans=4"],
