@@ -55,20 +55,24 @@ def eval_options(cfg) -> tuple[list[str], int | None]:
     return scenes, episodes
 
 
-def protocol_humans(cfg) -> str | None:
+def protocol_humans(cfg, strict: bool = True) -> str | None:
     """The reactive model protocol v2 evaluates with (``env.humans=reactive_replay``), or None for v1.
 
-    Training may use any ``env.reactive`` values; evaluation uses the protocol's, so different
-    ones are refused here rather than silently replaced."""
+    Training may use any ``env.reactive`` values; evaluation uses the protocol's, so ``crowdbench eval``
+    (``strict``) refuses different ones rather than silently replace them, while a training run's probe
+    and final evaluation (not strict) use the protocol's values for its model."""
     from crowdbench.envs.factory import replay_humans
     from crowdbench.envs.protocol import generate_episodes_v2, reactive_params
 
+    for key, value in dict(cfg.env.get("reactive") or {}).items():  # before the dataclass sees them
+        if key != "model" and (isinstance(value, bool) or not isinstance(value, int | float)):
+            raise UsageError(f"env.reactive.{key} must be a number, got {value!r}")
     try:
         params = replay_humans(cfg.env)
     except (ValueError, TypeError) as e:
         raise UsageError(str(e)) from None
-    if params is None:
-        return None
+    if params is None or not strict:
+        return None if params is None else params.model
     fixed = reactive_params(generate_episodes_v2("eth"), params.model)[0]
     for key, value in fixed.to_dict().items():
         if getattr(params, key) != value:
@@ -77,7 +81,7 @@ def protocol_humans(cfg) -> str | None:
     return params.model
 
 
-def run_eval(policy, cfg, out: Path, overrides: list[str]) -> dict:
+def run_eval(policy, cfg, out: Path, overrides: list[str], strict: bool = True) -> dict:
     from crowdbench.eval import evaluate, format_table
 
     scenes, episodes = eval_options(cfg)
@@ -91,7 +95,7 @@ def run_eval(policy, cfg, out: Path, overrides: list[str]) -> dict:
     try:
         results = evaluate(policy, scenes, episodes, out_dir=out, save_episodes=bool(cfg.eval.save_episodes),
                            sim_overrides=sim, meta={"seed": cfg.seed, "overrides": overrides},
-                           recorder_factory=recorders, humans=protocol_humans(cfg))
+                           recorder_factory=recorders, humans=protocol_humans(cfg, strict))
     except ValueError as e:  # e.g. the oracle on protocol v2
         raise UsageError(str(e)) from None
     print(format_table(results))
@@ -192,7 +196,7 @@ def make_probe(cfg):
 
         return probe_crowdnav
     scene = check_scene(cfg.train.probe_scene)
-    humans = protocol_humans(cfg) if env_name(cfg.env) == "replay" else None
+    humans = protocol_humans(cfg, strict=False) if env_name(cfg.env) == "replay" else None
 
     def probe(actor) -> dict[str, float]:
         res = evaluate(LearnedPolicy(actor, frame=cfg.env.frame), [scene], cfg.train.probe_episodes,

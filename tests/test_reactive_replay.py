@@ -174,6 +174,17 @@ def test_reactive_params_errors_name_the_key():
         ReactiveParams.of({"speed": 2})
 
 
+
+def test_reactive_values_are_checked_before_anything_runs(tmp_path, capsys):
+    from crowdbench.cli import main
+
+    for cmd in ("eval", "run"):
+        assert main([cmd, "env.humans=reactive_replay", "env.reactive.min_speed=fast", f"out={tmp_path / cmd}"]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "env.reactive.min_speed must be a number, got 'fast'" in err
+        assert not (tmp_path / cmd).exists()
+
+
 def test_protocol_v2_lists_are_v1_episodes_regenerated_and_compared(tmp_path, monkeypatch):
     import json
 
@@ -194,3 +205,21 @@ def test_protocol_v2_lists_are_v1_episodes_regenerated_and_compared(tmp_path, mo
         load_episodes_v2("eth")
     with pytest.raises(FileNotFoundError, match="no saved v2 episode list for scene 'hotel'"):
         load_episodes_v2("hotel")
+
+
+def test_training_with_other_reactive_values_evaluates_on_protocol_v2(tmp_path, capsys):
+    """``crowdbench eval`` refuses non-protocol env.reactive values; a training run with them is evaluated
+    (and probed) with protocol v2's values instead of failing at its end."""
+    import json
+
+    from crowdbench.cli import main
+
+    assert main(["eval", "policy=straight", "env.humans=reactive_replay", "env.reactive.horizon=2"]) == 2
+    assert "env.reactive.horizon=2 conflicts with protocol v2 (1.0)" in capsys.readouterr().err
+    out = tmp_path / "run"
+    assert main(["run", "env.humans=reactive_replay", "env.reactive.horizon=2", "env.reactive.model=sfm",
+                 "encoder=mlp", "encoder.dim=8", "train.total_frames=256", "train.frames_per_batch=128",
+                 "algo.warmup=128", "train.utd=0.25", "train.probe_every=128", "train.probe_episodes=2",
+                 "eval.episodes=2", "eval.scenes=[hotel]", f"out={out}"]) == 0
+    res = json.loads((out / "results.json").read_text())
+    assert res["protocol"] == "v2" and res["humans"] == "sfm" and res["reactive"]["horizon"] == 1.0
