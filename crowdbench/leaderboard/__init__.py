@@ -1,8 +1,10 @@
-"""The leaderboard harness: validate submissions, evaluate them on protocol v1, generate the tables.
+"""The leaderboard harness: validate submissions, evaluate them on every track, generate the tables.
 
 Modules: ``schema`` (submission.yaml fields, validation, :func:`make_submission`), ``cache``
-(fingerprint, the evaluated code closure), ``harness`` (policies via crowdbench.policies,
-evaluation, the run loop, local / Ray fan-out), ``render`` (tables, plot, the generated blocks of the README and the docs, diffs).
+(fingerprint, the evaluated code closure), ``tracks`` (the tracks, which entries fit them, their
+evaluation), ``harness`` (policies via crowdbench.policies, one evaluation job, local / Ray fan-out),
+``board`` (the run loop and ``--check``), ``render`` (protocol v1's tables, plot, the generated blocks of
+the README and the docs, diffs), ``track_tables`` (``leaderboard/TRACKS.md``).
 The command line is ``crowdbench leaderboard`` (crowdbench/cli.py); field reference and rules:
 docs/submitting.md.
 """

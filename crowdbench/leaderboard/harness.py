@@ -3,15 +3,14 @@
 Layout (``--root``, default ``./leaderboard``)::
 
     leaderboard/submissions/<name>/submission.yaml   (+ checkpoint.pt for learned entries)
-    leaderboard/results/<name>/results.json           written by the harness, never by hand
+    leaderboard/results/<name>/results.json           track v1, written by the harness, never by hand
+    leaderboard/results/<name>/<track>.json           the other tracks (crowdbench.leaderboard.tracks)
     leaderboard/results/oracle/unavoidable.json       episodes the privileged oracle fails
-    leaderboard/README.md, leaderboard/leaderboard.png generated
+    leaderboard/README.md, TRACKS.md, leaderboard.png generated (crowdbench.leaderboard.board)
 
-The harness computes every number itself (``crowdbench.eval.evaluate``, the same code as
-``crowdbench eval``); submitters only provide a yaml and, for learned entries, a state-dict
-checkpoint (``torch.load(..., weights_only=True)``). ``--check`` re-evaluates everything,
-writes nothing, and fails if the committed README (or a generated block of the top-level README or
-the docs, ``crowdbench.leaderboard.render.BLOCKS``) differs.
+The harness computes every number itself (``crowdbench.eval.evaluate`` / ``evaluate_crowdnav``, the
+same code as ``crowdbench eval``); submitters only provide a yaml and, for learned entries, a
+state-dict checkpoint (``torch.load(..., weights_only=True)``).
 """
 
 from __future__ import annotations
