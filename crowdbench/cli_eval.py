@@ -62,7 +62,7 @@ def protocol_humans(cfg, strict: bool = True) -> str | None:
     (``strict``) refuses different ones rather than silently replace them, while a training run's probe
     and final evaluation (not strict) use the protocol's values for its model."""
     from crowdbench.envs.factory import replay_humans
-    from crowdbench.envs.protocol import generate_episodes_v2, reactive_params
+    from crowdbench.envs.protocol import reactive_params, v2_humans
 
     for key, value in dict(cfg.env.get("reactive") or {}).items():  # before the dataclass sees them
         if key != "model" and (isinstance(value, bool) or not isinstance(value, int | float)):
@@ -73,7 +73,7 @@ def protocol_humans(cfg, strict: bool = True) -> str | None:
         raise UsageError(str(e)) from None
     if params is None or not strict:
         return None if params is None else params.model
-    fixed = reactive_params(generate_episodes_v2("eth"), params.model)[0]
+    fixed = reactive_params({"humans": v2_humans()}, params.model)[0]
     for key, value in fixed.to_dict().items():
         if getattr(params, key) != value:
             raise UsageError(f"env.reactive.{key}={getattr(params, key)} conflicts with protocol v2 ({value}); "
