@@ -25,8 +25,12 @@ def make_policy(name: str, cfg):
 def output_dir(cfg, command: str, name: str) -> Path:
     if cfg.out:
         return Path(cfg.out)
-    stamp = time.strftime("%Y%m%d-%H%M%S")
-    return Path("outputs") / f"{command}-{Path(name).stem}-{stamp}"
+    base = Path("outputs") / f"{command}-{Path(name).stem}-{time.strftime('%Y%m%d-%H%M%S')}"
+    out, n = base, 1
+    while out.exists():  # two runs started within one second get their own directories
+        n += 1
+        out = base.with_name(f"{base.name}-{n}")
+    return out
 
 
 def eval_options(cfg) -> tuple[list[str], int | None]:

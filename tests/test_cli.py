@@ -49,3 +49,19 @@ def test_orca_parameters_from_config(tmp_path):
                      f"orca.safety_margin={margin}", f"out={out}"]) == 0
         rates[margin] = json.loads((out / "results.json").read_text())["scenes"]["students003"]["collision_rate"]["mean"]
     assert rates[0.0] > rates[0.2]
+
+
+def test_default_output_dirs_started_in_one_second_differ(tmp_path, monkeypatch):
+    import time
+
+    from omegaconf import OmegaConf
+
+    from crowdbench.cli_eval import output_dir
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(time, "strftime", lambda fmt: "20261201-170205")
+    cfg = OmegaConf.create({"out": None})
+    first = output_dir(cfg, "run", "td3-gatedgcn")
+    first.mkdir(parents=True)
+    second = output_dir(cfg, "run", "td3-gatedgcn")
+    assert first.name == "run-td3-gatedgcn-20261201-170205" and second.name == "run-td3-gatedgcn-20261201-170205-2"
