@@ -164,6 +164,7 @@ def cmd_leaderboard(args: list[str]) -> int:
     from crowdbench.envs.protocol import EVAL_SCENES
     from crowdbench.leaderboard import BLOCK_START, DEFAULT_ROOT, LAUNCHERS, run
     from crowdbench.leaderboard.render import blocks_in
+    from crowdbench.leaderboard.sandbox import SANDBOXES, Limits
     from crowdbench.leaderboard.tracks import TRACK_ORDER, check_tracks
 
     ap = argparse.ArgumentParser(prog="crowdbench leaderboard",
@@ -183,6 +184,12 @@ def cmd_leaderboard(args: list[str]) -> int:
     ap.add_argument("--tracks", default=None, help="comma-separated tracks to evaluate (default all: "
                     + ", ".join(TRACK_ORDER) + "); the others keep their cached results")
     ap.add_argument("--root", type=Path, default=None, help=f"leaderboard directory (default {DEFAULT_ROOT})")
+    ap.add_argument("--sandbox", choices=SANDBOXES, default="auto", help="confine learned submissions' worker "
+                    "processes with bubblewrap (auto: where bwrap works; none: resource limits only)")
+    ap.add_argument("--worker-timeout", type=float, default=Limits.step_s, metavar="SECONDS",
+                    help=f"a worker's longest answer to one observation batch (default {Limits.step_s:g})")
+    ap.add_argument("--worker-memory", type=float, default=Limits.memory_gb, metavar="GB",
+                    help=f"a worker's address-space limit (default {Limits.memory_gb:g})")
     ap.add_argument("--readme", type=Path, default=None, help="also regenerate the results block of this file "
                     "(default: ./README.md when --root is not given and it has the block)")
     ap.add_argument("--docs", type=Path, action="append", default=None, metavar="FILE",
@@ -202,6 +209,11 @@ def cmd_leaderboard(args: list[str]) -> int:
             ap.error(f"not an evaluation scene: {', '.join(bad)}; valid: {', '.join(EVAL_SCENES)}")
     if a.jobs < 1:
         ap.error("--jobs must be >= 1")
+    if not (0 < a.worker_timeout < 86400):
+        ap.error("--worker-timeout must be in (0, 86400) seconds")
+    if not (1 <= a.worker_memory <= 1024):
+        ap.error("--worker-memory must be in [1, 1024] GB")
+    limits = Limits(step_s=a.worker_timeout, memory_gb=a.worker_memory, sandbox=a.sandbox)
     if a.address and a.launcher != "ray":
         ap.error("--address needs --launcher ray")
     readme = a.readme
@@ -219,7 +231,7 @@ def cmd_leaderboard(args: list[str]) -> int:
         except ValueError as e:
             ap.error(str(e))
     return run(a.root or DEFAULT_ROOT, a.only, a.check, a.force, a.episodes, scenes, jobs=a.jobs,
-               launcher=a.launcher, address=a.address, readme=readme, docs=docs, tracks=tracks)
+               launcher=a.launcher, address=a.address, readme=readme, docs=docs, tracks=tracks, limits=limits)
 
 
 def training_overrides(cfg: dict) -> list[str]:

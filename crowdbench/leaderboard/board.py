@@ -17,7 +17,8 @@ from crowdbench.envs.protocol import EVAL_SCENES, PROTOCOL_VERSION
 from crowdbench.leaderboard import render
 from crowdbench.leaderboard.cache import fingerprint
 from crowdbench.leaderboard.harness import LauncherError, _evaluate_all
-from crowdbench.leaderboard.schema import DEFAULT_ROOT, SubmissionError, read_submission, register_encoder
+from crowdbench.leaderboard.sandbox import DEFAULT_LIMITS, Limits, SandboxError, sandbox_name
+from crowdbench.leaderboard.schema import DEFAULT_ROOT, SubmissionError, read_submission
 from crowdbench.leaderboard.track_tables import render_tracks, trained_on
 from crowdbench.leaderboard.tracks import TRACK_ORDER, TRACKS, check_tracks
 
@@ -46,19 +47,21 @@ def _targets(readme, docs, log) -> list[tuple[Path, str]] | None:
 def run(root: Path = DEFAULT_ROOT, only: list[str] | None = None, check: bool = False, force: bool = False,
         episodes: int | None = None, scenes: list[str] | None = None, log=None, jobs: int = 1,
         launcher: str = "local", address: str | None = None, readme: Path | None = None,
-        docs: list[Path] | None = None, tracks: list[str] | None = None) -> int:
+        docs: list[Path] | None = None, tracks: list[str] | None = None, limits: Limits = DEFAULT_LIMITS) -> int:
     """Validate, evaluate and render; returns the exit code (0 ok, 1 a submission failed or --check differs).
 
     ``tracks``: the tracks evaluated (default all; the others keep their cached results, and ``--check``
     compares only their tables). ``readme``: a file whose block between the ``generated:results``
     markers is regenerated too; ``docs``: files whose generated blocks (``render.BLOCKS``) are
-    regenerated too (None: no other file is touched). Both are protocol v1's."""
+    regenerated too (None: no other file is touched). Both are protocol v1's. ``limits``: the bounds
+    and the sandbox of the learned submissions' worker processes (crowdbench/leaderboard/sandbox.py)."""
     root = Path(root)
     log = log or (lambda msg: print(msg, flush=True))
     scenes = list(scenes or EVAL_SCENES)
     try:
         tracks = check_tracks(tracks)
-    except ValueError as e:
+        sandbox = sandbox_name(limits)
+    except (ValueError, SandboxError) as e:
         log(f"crowdbench leaderboard: error: {e}")
         return 1
     sub_root = root / "submissions"
@@ -85,10 +88,8 @@ def run(root: Path = DEFAULT_ROOT, only: list[str] | None = None, check: bool = 
         rejected.append((track, str(e).replace(str(root.resolve()) + "/", "").replace(str(root) + "/", "")))
 
     for d in dirs:
-        try:
+        try:  # (a learned entry's code is imported only by its worker: crowdbench/leaderboard/worker.py)
             sub = read_submission(d)
-            if sub.kind == "learned":
-                register_encoder(sub)
         except SubmissionError as e:
             reject(e, None)
             continue
@@ -115,7 +116,10 @@ def run(root: Path = DEFAULT_ROOT, only: list[str] | None = None, check: bool = 
                                           f"(`crowdbench leaderboard --only {d.name} --tracks {name}`)")))
                 continue
             todo.append((d, sub, name, fp, res_path))
-    outcomes = _evaluate_all(todo, scenes, episodes, jobs, launcher, address)
+    if any(sub.kind == "learned" for _, sub, _, _, _ in todo):
+        log(f"learned submissions run in worker processes ({'confined by bubblewrap' if sandbox == 'bubblewrap' else 'not confined: no usable bwrap'}"
+            f"; {limits.memory_gb:g} GB, {limits.cpu_s} s CPU, {limits.step_s:g} s per step)")
+    outcomes = _evaluate_all(todo, scenes, episodes, jobs, launcher, address, limits)
     while True:
         try:
             d, sub, name, res_path, outcome = next(outcomes)

@@ -10,7 +10,9 @@ Layout (``--root``, default ``./leaderboard``)::
 
 The harness computes every number itself (``crowdbench.eval.evaluate`` / ``evaluate_crowdnav``, the
 same code as ``crowdbench eval``); submitters only provide a yaml and, for learned entries, a
-state-dict checkpoint (``torch.load(..., weights_only=True)``).
+state-dict checkpoint (``torch.load(..., weights_only=True)``) and optionally an encoder module. A
+learned entry's code and checkpoint are loaded only in its worker process
+(crowdbench/leaderboard/worker.py), which receives observations and returns actions.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ import torch
 from crowdbench import policies
 from crowdbench.envs.protocol import EVAL_SCENES
 from crowdbench.leaderboard.cache import HARNESS_VERSION
+from crowdbench.leaderboard.sandbox import DEFAULT_LIMITS, Limits
 from crowdbench.leaderboard.schema import (
     Submission,
     SubmissionError,
@@ -41,6 +44,7 @@ from crowdbench.leaderboard.tracks import (
     track_config,
     trained_track,
 )
+from crowdbench.leaderboard.worker import FRAMES, WorkerError, WorkerPolicy
 from crowdbench.numerics import PINNED
 
 OUTCOME_CHAR = {"success": "S", "collision": "C", "timeout": "T"}
@@ -62,7 +66,9 @@ def dummy_obs(batch: int = 2, humans: int = 3):
     return obs_tensordict({"robot": robot, "humans": h, "humans_mask": mask}, batch)
 
 
-def _learned_policy(sub: Submission):
+def learned_policy(sub: Submission):
+    """A learned submission's policy, validated; runs in its worker process (:func:`worker._serve`),
+    never in the harness: it imports the submission's encoder module."""
     from crowdbench.algos.checkpoint import CheckpointError, load_checkpoint
 
     d, path = sub.data, sub.yaml_path
@@ -74,9 +80,12 @@ def _learned_policy(sub: Submission):
     cfg = state["config"]
     try:
         c_enc, c_algo = cfg["encoder"]["name"], cfg["algo"]["name"]
-        _ = cfg["env"]["v_max"], cfg["env"]["frame"]
+        _, frame = cfg["env"]["v_max"], cfg["env"]["frame"]
     except (KeyError, TypeError) as e:
         raise SubmissionError(path, "checkpoint", f"{sub.checkpoint}: config lacks {e}") from None
+    if frame not in FRAMES:
+        raise SubmissionError(path, "checkpoint", f"{sub.checkpoint}: env.frame {str(frame)[:40]!r} is not one of "
+                                                  f"{', '.join(FRAMES)}")
     if c_enc != d["encoder"]:
         raise SubmissionError(path, "encoder", f"{d['encoder']!r} but the checkpoint was trained with {c_enc!r}")
     if c_algo != d["algo"]:
@@ -100,16 +109,19 @@ def _learned_policy(sub: Submission):
     return policy
 
 
-def build_policy(sub: Submission, track: Track = TRACKS["v1"]):
-    """The :class:`~crowdbench.envs.policy.Policy` of a validated submission, built by the registry
-    (baselines and the oracle with ``track``'s env config, as ``crowdbench eval`` with it builds them)."""
+def build_policy(sub: Submission, track: Track = TRACKS["v1"], limits: Limits = DEFAULT_LIMITS):
+    """The :class:`~crowdbench.envs.policy.Policy` of a validated submission: a learned one behind its
+    worker process (close it: a context manager), a baseline or the oracle built by the registry with
+    ``track``'s env config, as ``crowdbench eval`` with it builds them."""
     if sub.kind == "learned":
-        policy = _learned_policy(sub)
-    else:
         try:
-            policy = policies.build(*baseline_args(sub.data, track_config(track)))
-        except policies.PolicyError as e:
-            raise policy_error(sub.yaml_path, e) from None
+            return WorkerPolicy(sub.dir, sub.name, limits)
+        except WorkerError as e:
+            raise SubmissionError(sub.yaml_path, e.field, str(e)) from None
+    try:
+        policy = policies.build(*baseline_args(sub.data, track_config(track)))
+    except policies.PolicyError as e:
+        raise policy_error(sub.yaml_path, e) from None
     policy.name = sub.name
     return policy
 
@@ -151,25 +163,31 @@ def unavoidable(res: dict) -> dict:
 
 
 # ---------------------------------------------------------------------------------- jobs
-def _job(sub: Submission, track: str, scenes: list[str], episodes: int | None, fp: str):
+def _job(sub: Submission, track: str, scenes: list[str], episodes: int | None, fp: str, limits: Limits = DEFAULT_LIMITS):
     """Evaluate one validated submission on one track: ``(results, seconds)`` or the :class:`SubmissionError`.
 
-    Single-threaded (``torch.set_num_threads(1)``) whatever the caller's setting, so the
-    floating-point reductions, and hence the numbers, do not depend on the machine or ``--jobs``.
+    Single-threaded (``torch.set_num_threads(1)``; the worker too) whatever the caller's setting, so
+    the floating-point reductions, and hence the numbers, do not depend on the machine or ``--jobs``.
     Any failure of the evaluation is that submission's rejection, never the whole run's.
     """
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
+    policy = None
     try:
         t = time.time()
         t_ = TRACKS[track]
-        res = evaluate_submission(sub, build_policy(sub, t_), scenes, episodes, fp, t_)
+        policy = build_policy(sub, t_, limits)
+        res = evaluate_submission(sub, policy, scenes, episodes, fp, t_)
         return res, time.time() - t
     except SubmissionError as e:
         return e
+    except WorkerError as e:
+        return SubmissionError(sub.yaml_path, e.field, str(e))
     except Exception as e:  # noqa: BLE001 - e.g. a model that fails on a real observation mid-episode
         return _failed(sub, e)
     finally:
+        if isinstance(policy, WorkerPolicy):
+            policy.close()
         torch.set_num_threads(threads)
 
 
@@ -185,16 +203,16 @@ def _absolute(sub: Submission) -> Submission:
                                extra_files=[p.resolve() for p in sub.extra_files])
 
 
-def _local(todo: list, scenes, episodes, jobs: int):
+def _local(todo: list, scenes, episodes, jobs: int, limits: Limits):
     if jobs <= 1 or len(todo) <= 1:
         for _, sub, track, fp, _ in todo:
-            yield _job(sub, track, scenes, episodes, fp)
+            yield _job(sub, track, scenes, episodes, fp, limits)
         return
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
     with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as pool:
-        futures = [pool.submit(_job, sub, track, scenes, episodes, fp) for _, sub, track, fp, _ in todo]
+        futures = [pool.submit(_job, sub, track, scenes, episodes, fp, limits) for _, sub, track, fp, _ in todo]
         for (_, sub, _, _, _), fut in zip(todo, futures, strict=True):
             try:
                 yield fut.result()
@@ -202,7 +220,7 @@ def _local(todo: list, scenes, episodes, jobs: int):
                 yield _failed(sub, e)
 
 
-def _ray(todo: list, scenes, episodes, jobs: int, address: str | None):
+def _ray(todo: list, scenes, episodes, jobs: int, address: str | None, limits: Limits):
     """One Ray task per submission: a local cluster of ``jobs`` CPUs, or the cluster at ``address``
     (``auto``, ``ray://host:10001``; crowdbench installed and the leaderboard directory at the same
     absolute path on its nodes)."""
@@ -223,7 +241,7 @@ def _ray(todo: list, scenes, episodes, jobs: int, address: str | None):
         # the workers evaluate with this process's numerical path (crowdbench/numerics.py), on any node
         pinned = {k: os.environ[k] for k in PINNED if k in os.environ}
         task = ray.remote(num_cpus=1, max_retries=0, runtime_env={"env_vars": pinned})(_job)
-        refs = [task.remote(_absolute(sub), track, scenes, episodes, fp) for _, sub, track, fp, _ in todo]
+        refs = [task.remote(_absolute(sub), track, scenes, episodes, fp, limits) for _, sub, track, fp, _ in todo]
         for (_, sub, _, _, _), ref in zip(todo, refs, strict=True):
             try:
                 yield ray.get(ref)
@@ -235,11 +253,11 @@ def _ray(todo: list, scenes, episodes, jobs: int, address: str | None):
 
 
 def _evaluate_all(todo: list, scenes: list[str], episodes: int | None, jobs: int, launcher: str,
-                  address: str | None):
+                  address: str | None, limits: Limits = DEFAULT_LIMITS):
     """Yield ``(dir, submission, track, results path, (results, seconds) | SubmissionError)`` in ``todo`` order."""
     if launcher not in LAUNCHERS:
         raise ValueError(f"unknown launcher {launcher!r}; valid: {', '.join(LAUNCHERS)}")
-    outs = _ray(todo, scenes, episodes, jobs, address) if launcher == "ray" and todo else \
-        _local(todo, scenes, episodes, jobs)
+    outs = _ray(todo, scenes, episodes, jobs, address, limits) if launcher == "ray" and todo else \
+        _local(todo, scenes, episodes, jobs, limits)
     for (d, sub, track, _, res_path), out in zip(todo, outs, strict=True):
         yield d, sub, track, res_path, out
