@@ -87,6 +87,7 @@ def protocol_humans(cfg, strict: bool = True) -> str | None:
 
 def run_eval(policy, cfg, out: Path, overrides: list[str], strict: bool = True) -> dict:
     from crowdbench.eval import evaluate, format_table
+    from crowdbench.fixed_lists import check_replay
 
     scenes, episodes = eval_options(cfg)
     sim = SimConfig.fields_of(cfg.env)
@@ -96,11 +97,13 @@ def run_eval(policy, cfg, out: Path, overrides: list[str], strict: bool = True) 
         raise UsageError(str(e)) from None
     sim["frame"] = policy.frame
     recorders = recorder_factory(policy, cfg, out, scenes)
+    humans = protocol_humans(cfg, strict)
     try:
+        check_replay("v2" if humans else "v1", scenes)  # the published lists, not look-alikes
         results = evaluate(policy, scenes, episodes, out_dir=out, save_episodes=bool(cfg.eval.save_episodes),
                            sim_overrides=sim, meta={"seed": cfg.seed, "overrides": overrides},
-                           recorder_factory=recorders, humans=protocol_humans(cfg, strict))
-    except ValueError as e:  # e.g. the oracle on protocol v2
+                           recorder_factory=recorders, humans=humans)
+    except ValueError as e:  # e.g. the oracle on protocol v2, a list that is not the published one
         raise UsageError(str(e)) from None
     print(format_table(results))
     print(f"results written to {out / 'results.json'}")
@@ -165,10 +168,13 @@ def run_crowdnav_eval(policy, cfg, out: Path, overrides: list[str]) -> dict:
     from crowdbench.envs.factory import sim_config
     from crowdbench.eval import format_table
     from crowdbench.eval_crowdnav import evaluate_crowdnav
+    from crowdbench.fixed_lists import check_crowdnav, crowdnav_digests
 
     e = cfg.env
     try:
-        results = evaluate_crowdnav(policy, sim_config(e), None if e.eval_settings is None else list(e.eval_settings),
+        c = sim_config(e)
+        check_crowdnav(crowdnav_digests(c, list(e.eval_settings or [f"{c.scenario}_n{c.n_humans}"])))
+        results = evaluate_crowdnav(policy, c, None if e.eval_settings is None else list(e.eval_settings),
                                     e.eval_episodes, out_dir=out, save_episodes=bool(cfg.eval.save_episodes),
                                     meta={"seed": cfg.seed, "overrides": overrides})
     except ValueError as err:

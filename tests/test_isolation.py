@@ -107,7 +107,7 @@ def make_learned(root: Path, name: str, code: str) -> None:
         "authors: [mallory]\n")
     (d / "evil.py").write_text(code)
     ns: dict = {}
-    exec(compile(ENCODER, "enc", "exec"), ns)  # the benign class, to write a checkpoint it loads into
+    exec(compile(ENCODER, "enc", "exec"), ns)  # noqa: S102 - the benign class, to write a checkpoint it loads into
     ENCODERS["evil"] = ns["Enc"]
     try:
         torch.manual_seed(0)

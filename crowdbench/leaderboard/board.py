@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 
 from crowdbench.envs.protocol import EVAL_SCENES, PROTOCOL_VERSION
+from crowdbench.fixed_lists import check_replay
 from crowdbench.leaderboard import render
 from crowdbench.leaderboard.cache import fingerprint
 from crowdbench.leaderboard.harness import LauncherError, _evaluate_all
@@ -61,6 +62,8 @@ def run(root: Path = DEFAULT_ROOT, only: list[str] | None = None, check: bool = 
     try:
         tracks = check_tracks(tracks)
         sandbox = sandbox_name(limits)
+        for version in sorted({TRACKS[t].protocol for t in tracks if TRACKS[t].replay}):
+            check_replay(version, scenes)  # the published lists (crowdbench/fixed_lists.py)
     except (ValueError, SandboxError) as e:
         log(f"crowdbench leaderboard: error: {e}")
         return 1

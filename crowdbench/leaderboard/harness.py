@@ -28,6 +28,7 @@ import torch
 
 from crowdbench import policies
 from crowdbench.envs.protocol import EVAL_SCENES
+from crowdbench.fixed_lists import check_crowdnav
 from crowdbench.leaderboard.cache import HARNESS_VERSION
 from crowdbench.leaderboard.sandbox import DEFAULT_LIMITS, Limits
 from crowdbench.leaderboard.schema import (
@@ -134,6 +135,7 @@ def evaluate_submission(sub: Submission, policy, scenes: list[str], episodes: in
         meta.update(track=track.name, trained_on=sub.data.get("track", "v1") if sub.kind == "learned" else None)
     with tempfile.TemporaryDirectory() as tmp:
         res = evaluate_track(track, policy, scenes, episodes, Path(tmp), meta)
+        check_crowdnav(res.get("lists", {}))  # (the replay lists are checked before any job starts)
         rows = [json.loads(line) for line in (Path(tmp) / "episodes.jsonl").read_text().splitlines()]
     outcomes: dict[str, list] = {s: [] for s in res["scenes"]}
     for r in rows:

@@ -91,8 +91,11 @@ def recv(fd: int, deadline: float | None = None, max_payload: int = 1 << 30) -> 
     if not isinstance(header, dict) or not isinstance(header.get("op"), str):
         raise WireError("a header without an op")
     payload = _read_exact(fd, n_payload, deadline)
+    specs = header.get("arrays") or []
+    if not isinstance(specs, list):
+        raise WireError("a header whose arrays are not a list")
     arrays, at = {}, 0
-    for item in header.get("arrays") or []:
+    for item in specs:
         try:
             key, name, shape = item
             dtype = DTYPES[name]
