@@ -713,3 +713,22 @@ def test_submit_validates_before_writing(tmp_path, capsys, monkeypatch):
     with pytest.raises(SubmissionError, match=r"field 'name': .*not a valid submission name"):
         schema.read_submission(d.parent / "..x")
 
+
+def test_a_corrupted_scene_file_is_one_line_and_writes_nothing(tmp_path, monkeypatch):
+    """Finding 16: a corrupted or missing scene file stops the leaderboard with one line naming the file
+    (exit 1), before anything is evaluated or written."""
+    import shutil
+
+    from crowdbench.data import scenes
+
+    data = tmp_path / "eth_ucy"
+    shutil.copytree(scenes.DATA_DIR, data)
+    monkeypatch.setattr(scenes, "DATA_DIR", data)
+    root = tmp_path / "lb"
+    add_straight(root)
+    for corrupt in (lambda p: p.write_text("garbage\n"), lambda p: p.unlink()):
+        corrupt(data / "hotel.txt")
+        log = []
+        assert run(root, log=log.append, **FAST) == 1
+        assert len(log) == 1 and log[0].startswith(f"crowdbench leaderboard: error: {data / 'hotel.txt'}: "), log
+        assert sorted(p.name for p in root.iterdir()) == ["submissions"]  # nothing written
