@@ -1,8 +1,8 @@
 """A tiny external encoder: the worked example of docs/submitting.md.
 
-It lives outside the ``crowdbench`` package; a leaderboard submission names it with
-``encoder_import: examples.tiny_encoder:TinyEncoder`` (or through the ``crowdbench.encoders``
-entry-point group of an installed package) and the harness registers it into
+It lives outside the ``crowdbench`` package; a leaderboard submission ships a copy next to its
+``submission.yaml`` and names it with ``encoder_import: tiny_encoder:TinyEncoder`` (or through the
+``crowdbench.encoders`` entry-point group of an installed package) and the harness registers it into
 ``crowdbench.models.ENCODERS`` before loading the checkpoint.
 
 The encoder interface (crowdbench/models/base.py) needs only ``out_dim`` and

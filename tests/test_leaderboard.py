@@ -153,13 +153,16 @@ def test_seeds_grouped(tmp_path):
 
 
 def test_external_encoder_import_and_entry_point(tmp_path, monkeypatch):
+    import sys
+
     monkeypatch.syspath_prepend(str(REPO))
     from examples.tiny_encoder import TinyEncoder
 
     root = tmp_path / "lb"
     enc = {"name": "tiny_example", "dim": 8}
     monkeypatch.setitem(ENCODERS, "tiny_example", TinyEncoder)  # to build the toy checkpoint; removed after
-    d = write_yaml(root, "tiny", learned_yaml("tiny", "tiny_example", "encoder_import: examples.tiny_encoder:TinyEncoder\n"))
+    d = write_yaml(root, "tiny", learned_yaml("tiny", "tiny_example", "encoder_import: tiny_encoder:TinyEncoder\n"))
+    (d / "tiny_encoder.py").write_text((REPO / "examples" / "tiny_encoder.py").read_text())  # a file next to the yaml
     toy_checkpoint(d / "checkpoint.pt", enc)
     ep = importlib.metadata.EntryPoint(name="tiny_ep", value="examples.tiny_encoder:TinyEncoder",
                                        group="crowdbench.encoders")
@@ -173,10 +176,12 @@ def test_external_encoder_import_and_entry_point(tmp_path, monkeypatch):
     toy_checkpoint(d / "checkpoint.pt", MLP)
     log = []
     assert run(root, log=log.append, **FAST) == 1
-    assert ENCODERS["tiny_example"] is TinyEncoder and ENCODERS["tiny_ep"] is TinyEncoder
+    assert ENCODERS["tiny_ep"] is TinyEncoder  # the entry point's class; encoder_import: the submission's own file
+    assert ENCODERS["tiny_example"].__name__ == "TinyEncoder" and ENCODERS["tiny_example"] is not TinyEncoder
+    assert Path(sys.modules[ENCODERS["tiny_example"].__module__].__file__) == d.parent / "tiny" / "tiny_encoder.py"
     assert any(m.startswith("tiny: evaluated") for m in log) and any(m.startswith("tiny_ep: evaluated") for m in log)
     (bad,) = [m for m in log if "tiny_bad" in m and "error" in m]
-    assert "field 'encoder_import': cannot import 'examples.nothere'" in bad
+    assert "field 'encoder_import': 'examples.nothere' is not a module file inside the submission directory" in bad
 
 
 def test_cli_dispatch_and_bad_options(tmp_path, capsys):
@@ -476,3 +481,259 @@ def test_ray_that_cannot_start_is_one_line(tmp_path, monkeypatch):
     assert log[-1] == ("crowdbench leaderboard: error: --launcher ray: cannot join the Ray cluster at "
                        "ray://nohost:10001: ConnectionError: could not connect to ray://nohost:10001")
     assert not (root / "README.md").exists()  # nothing written
+
+
+# ---------------------------------------------------------------------------------- hostile submissions
+def table_columns(text: str) -> list[tuple[int, int]]:
+    """``(header columns, row columns)`` of every row of every markdown table of ``text``
+    (cells split on unescaped pipes)."""
+    out, head = [], None
+    for line in text.splitlines():
+        if not line.startswith("|"):
+            head = None
+            continue
+        n = len(re.split(r"(?<!\\)\|", line)) - 2
+        head = n if head is None else head
+        out.append((head, n))
+    return out
+
+
+def rejection(log: list[str], name: str) -> str:
+    (line,) = [m for m in log if m.startswith("crowdbench leaderboard: error:") and f"/{name}/" in m]
+    return line
+
+
+def test_yaml_aliases_size_and_long_values_are_bounded(tmp_path):
+    """Finding 5: aliases are refused (a 528-byte file used to expand to gigabytes in the error message,
+    and a valid `authors: [&s ..., *s x1000]` to a 10 MB README), the file size and every list are bounded,
+    and a wrongly typed value is cut short in the message."""
+    import time
+
+    from crowdbench.leaderboard import SubmissionError, read_submission
+
+    root = tmp_path / "lb"
+    add_straight(root)
+    base = "name: {n}\nkind: baseline\npolicy: orca\nauthors: [a]\n"
+    laughs = "".join(f"l{i}: &l{i} [" + ", ".join([f"*l{i - 1}"] * 10) + "]\n" for i in range(1, 10))
+    cases = {
+        "laughs": "x: &l0 lol\n" + laughs + "seed: *l9\n",  # 9 levels of 10 aliases in a wrongly typed field
+        "authors_alias": "name: authors_alias\nkind: baseline\npolicy: orca\n"
+                         f"authors: [&s {'x' * 10_000}, " + ", ".join(["*s"] * 1000) + "]\n",
+        "big": base.format(n="big") + "notes: " + "x" * 70_000 + "\n",  # over the size limit
+        "many_authors": "name: many_authors\nkind: baseline\npolicy: orca\nauthors: [" + ", ".join(["a"] * 1000) + "]\n",
+        "long_seed": base.format(n="long_seed") + "seed: " + "9" * 50_000 + "\n",  # an int too long to print
+        "typed_seed": base.format(n="typed_seed") + "seed: [" + ", ".join(["abcdefgh"] * 3000) + "]\n",
+        "deep": base.format(n="deep") + "overrides: " + "[" * 5000 + "]" * 5000 + "\n",
+    }
+    problems = {"laughs": "aliases", "authors_alias": "aliases", "big": "larger than 65536 bytes",
+                "many_authors": "field 'authors': at most 20", "long_seed": "malformed YAML",
+                "typed_seed": "field 'seed': must be an integer, got [", "deep": "nested deeper than"}
+    for name, text in cases.items():
+        d = write_yaml(root, name, text.replace("name: {n}", f"name: {name}"))
+        t = time.time()
+        with pytest.raises(SubmissionError) as e:
+            read_submission(d)
+        assert time.time() - t < 1, name
+        msg = str(e.value)
+        assert "\n" not in msg and len(msg) < 500 and problems[name] in msg, (name, msg[:300])
+        assert msg.startswith(f"{d / 'submission.yaml'}: "), name
+    assert "..." in str(pytest.raises(SubmissionError, read_submission, root / "submissions" / "typed_seed").value)
+    log = []
+    assert run(root, log=log.append, **FAST) == 1
+    assert len((root / "README.md").read_text()) < 20_000 and len((root / "TRACKS.md").read_text()) < 20_000
+    assert all(len(m) < 500 for m in log)
+
+
+INJECTED = "Evil | World-best method | 1.000"
+
+
+def test_markdown_injection_is_refused_or_escaped(tmp_path):
+    """Finding 8: a newline in a one-line field is refused; pipes and markdown in submission text are
+    escaped in every generated table (no forged row or column); links must be http(s) URLs with a host."""
+    from crowdbench.leaderboard import SubmissionError, read_submission
+
+    root = tmp_path / "lb"
+    d = write_yaml(root, "evil", 'name: evil\nkind: baseline\npolicy: straight\nauthors: [a]\n'
+                                 'entry: "Evil\\n| World-best method | 1.000 |"\n')
+    with pytest.raises(SubmissionError, match=r"evil/submission.yaml: field 'entry': must be one line"):
+        read_submission(d)
+    for link, ok in (("javascript:alert(1)", False), ("data:text/html,<b>x</b>", False), ("docs/x.md", False),
+                     ("https://", False), ("https://ex.org/a b", False), ("//ex.org/x", False),
+                     ("https://ex.org/a|b", False), ("HTTPS://ex.org", False), ("https://ex.org/p?q=1#s", True),
+                     ("http://ex.org:8080/a_b", True)):
+        (d / "submission.yaml").write_text(f"name: evil\nkind: baseline\npolicy: straight\nauthors: [a]\n"
+                                           f"link: {link!r}\n")
+        if ok:
+            assert read_submission(d).data["link"] == link
+        else:
+            with pytest.raises(SubmissionError, match=r"field 'link': must be an http:// or https:// URL"):
+                read_submission(d)
+    (d / "submission.yaml").write_text(f"name: evil\nkind: baseline\npolicy: straight\nentry: '{INJECTED} <b>[x](y)'\n"
+                                       f"authors: ['x | 0.0 |', '*b* `c` _d_']\n")
+    add_straight(root)
+    assert run(root, log=lambda m: None, **FAST) == 0
+    for f in ("README.md", "TRACKS.md"):
+        text = (root / f).read_text()
+        assert all(head == n for head, n in table_columns(text)), f
+        assert not re.search(r"(?<!\\)\| World-best method", text) and "<b>" not in text
+    readme = (root / "README.md").read_text()
+    assert r"| Evil \| World-best method \| 1.000 \<b\>\[x\](y) | 1 |" in readme
+    assert r"| x \| 0.0 \|, \*b\* \`c\` \_d\_ |" in readme
+
+
+def test_checkpoint_and_encoder_module_are_confined_to_the_submission(tmp_path):
+    """Finding 10: `checkpoint:` and `encoder_import`'s module must be files inside the submission
+    directory, reached without symlinks; the module is found without importing it."""
+    import os
+    import sys
+
+    from crowdbench.leaderboard import SubmissionError, read_submission
+
+    root = tmp_path / "lb"
+    add_toy(root, "victim")
+    outside = tmp_path / "secret.pt"
+    outside.write_bytes(b"not a checkpoint")
+    d = write_yaml(root, "thief", learned_yaml("thief"))
+    (d / "real.pt").write_bytes(b"x")
+    (d / "sub").mkdir()
+    os.symlink(d / "real.pt", d / "link.pt")
+    os.symlink(root / "submissions" / "victim", d / "vdir")
+    for ckpt in ("../victim/checkpoint.pt", str(outside), str(d / "real.pt"), "link.pt", "vdir/checkpoint.pt",
+                 "sub/../real.pt"):
+        (d / "submission.yaml").write_text(learned_yaml("thief", extra=f"checkpoint: {ckpt}\n"))
+        with pytest.raises(SubmissionError) as e:
+            read_submission(d)
+        assert str(e.value).startswith(f"{d / 'submission.yaml'}: field 'checkpoint': "), ckpt
+        assert "inside the submission directory" in str(e.value) or "symlink" in str(e.value), ckpt
+    (d / "submission.yaml").write_text(learned_yaml("thief", extra="checkpoint: real.pt\n"))
+    assert read_submission(d).checkpoint == d / "real.pt"
+    # the whole run: the thief is rejected, naming the field; nothing is evaluated for it
+    (d / "submission.yaml").write_text(learned_yaml("thief", extra="checkpoint: ../victim/checkpoint.pt\n"))
+    log = []
+    assert run(root, log=log.append, **FAST) == 1
+    assert "field 'checkpoint'" in rejection(log, "thief") and not (root / "results" / "thief").exists()
+    # encoder modules: found statically (a module that raises at import is not run by read_submission)
+    (d / "submission.yaml").write_text(learned_yaml("thief", "x_enc", "encoder_import: pkg.enc_mod:Enc\n"
+                                                    "checkpoint: real.pt\n"))
+    (d / "pkg").mkdir()
+    (d / "pkg" / "enc_mod.py").write_text("raise SystemExit('imported')\n")
+    assert read_submission(d).extra_files == [d / "pkg" / "enc_mod.py"] and "pkg.enc_mod" not in sys.modules
+    (d / "pkg" / "enc_mod.py").unlink()
+    (d / "pkg" / "enc_mod").mkdir()
+    (d / "pkg" / "enc_mod" / "__init__.py").write_text("")
+    assert read_submission(d).extra_files == [d / "pkg" / "enc_mod" / "__init__.py"]
+    (d / "pkg" / "mine.py").symlink_to(REPO / "examples" / "tiny_encoder.py")
+    for spec, problem in (("examples.tiny_encoder:TinyEncoder", "not a module file inside the submission directory"),
+                          ("pkg.mine:TinyEncoder", "symlink"), ("os:system", "not a module file inside"),
+                          ("../x:Y", "is not of the form module:Class")):
+        (d / "submission.yaml").write_text(learned_yaml("thief", "x_enc", f"encoder_import: {spec!r}\n"
+                                                        "checkpoint: real.pt\n"))
+        with pytest.raises(SubmissionError, match=f"field 'encoder_import': .*{re.escape(problem)}"):
+            read_submission(d)
+
+
+TAGGED = '''
+from examples.tiny_encoder import TinyEncoder
+
+
+class Enc(TinyEncoder):
+    TAG = {tag!r}
+'''
+
+
+def test_two_submissions_shipping_the_same_module_name_get_their_own(tmp_path, monkeypatch):
+    """Finding 3: two submissions that both ship my_encoder.py are registered with their own class and
+    fingerprinted with their own file (the sys.modules cache gave the second one the first one's)."""
+    from crowdbench.leaderboard import fingerprint, read_submission
+    from crowdbench.leaderboard.schema import register_encoder
+
+    monkeypatch.syspath_prepend(str(REPO))
+    root = tmp_path / "lb"
+    subs = []
+    for tag in ("a", "b"):
+        d = write_yaml(root, f"sub_{tag}", learned_yaml(f"sub_{tag}", f"enc_{tag}", "encoder_import: my_encoder:Enc\n"))
+        (d / "my_encoder.py").write_text(TAGGED.format(tag=tag))
+        toy_checkpoint(d / "checkpoint.pt", MLP)
+        subs.append(read_submission(d))
+    assert [s.extra_files for s in subs] == [[s.dir / "my_encoder.py"] for s in subs]
+    assert fingerprint(subs[0], ["hotel"], 2) != fingerprint(subs[1], ["hotel"], 2)
+    for s in subs:
+        monkeypatch.delitem(ENCODERS, s.data["encoder"], raising=False)
+        register_encoder(s)
+        register_encoder(s)  # again (the harness registers in the job too): the same class, no conflict
+    assert ENCODERS["enc_a"].TAG == "a" and ENCODERS["enc_b"].TAG == "b"
+    assert [s.extra_files for s in subs] == [[s.dir / "my_encoder.py"] for s in subs]
+    del ENCODERS["enc_a"], ENCODERS["enc_b"]
+
+
+def make_run(tmp_path: Path) -> Path:
+    from omegaconf import OmegaConf
+
+    from crowdbench.cli import compose
+
+    cfg = OmegaConf.to_container(compose(["encoder=mlp", "encoder.dim=8", "encoder.hidden=[16]", "seed=4"]),
+                                 resolve=True)
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    actor = build_actor("td3", dict(cfg["encoder"]), 1.0, squash=cfg["algo"]["actor_squash"])
+    save_checkpoint(run_dir / "checkpoint.pt", {"config": cfg, "actor": actor.state_dict(), "frames": 640})
+    return run_dir
+
+
+def test_submit_validates_before_writing(tmp_path, capsys, monkeypatch):
+    """Finding 11: `crowdbench submit --name ../../x` (or an absolute name, a bad link, a multi-line entry)
+    is refused before anything is written; a failed read-back removes what was written."""
+    import os
+
+    run_dir = make_run(tmp_path)
+    root = tmp_path / "a" / "b" / "lb"
+
+    def files():
+        return sorted(str(p.relative_to(tmp_path)) for p in tmp_path.rglob("*") if "run" not in p.parts)
+
+    before = files()
+    for args, problem in ((["--name", "../../x"], "field 'name'"), (["--name", str(tmp_path / "abs")], "field 'name'"),
+                          (["--name", "ok", "--link", "javascript:alert(1)"], "field 'link'"),
+                          (["--name", "ok", "--entry", "Mine\n| forged | 1.000 |"], "field 'entry'"),
+                          (["--name", "ok", "--authors", "a|b" * 100], "field 'authors'")):
+        args = ["--entry", "Mine", *args] if "--entry" not in args else args
+        assert cli_main(["submit", str(run_dir), *args, "--root", str(root)]) == 2, args
+        err = capsys.readouterr().err.strip()
+        assert problem in err and "\n" not in err and len(err) < 500, (args, err)
+        assert files() == before, args  # nothing written, inside or outside the leaderboard
+    from crowdbench.leaderboard import SubmissionError, schema
+
+    def fail(sub_dir):
+        raise SubmissionError(sub_dir / "submission.yaml", "checkpoint", "read back failed")
+
+    monkeypatch.setattr(schema, "read_submission", fail)
+    assert cli_main(["submit", str(run_dir), "--name", "ok", "--entry", "Mine", "--root", str(root)]) == 2
+    assert "read back failed" in capsys.readouterr().err and not (root / "submissions" / "ok").exists()
+    # directory names follow the same rule when the harness reads them
+    monkeypatch.undo()
+    d = write_yaml(root, "bad name", "name: bad name\nkind: baseline\npolicy: straight\nauthors: [a]\n")
+    with pytest.raises(SubmissionError, match=r"field 'name': .*not a valid submission name"):
+        schema.read_submission(d)
+    os.rename(d, d.parent / "..x")
+    with pytest.raises(SubmissionError, match=r"field 'name': .*not a valid submission name"):
+        schema.read_submission(d.parent / "..x")
+
+
+def test_a_corrupted_scene_file_is_one_line_and_writes_nothing(tmp_path, monkeypatch):
+    """Finding 16: a corrupted or missing scene file stops the leaderboard with one line naming the file
+    (exit 1), before anything is evaluated or written."""
+    import shutil
+
+    from crowdbench.data import scenes
+
+    data = tmp_path / "eth_ucy"
+    shutil.copytree(scenes.DATA_DIR, data)
+    monkeypatch.setattr(scenes, "DATA_DIR", data)
+    root = tmp_path / "lb"
+    add_straight(root)
+    for corrupt in (lambda p: p.write_text("garbage\n"), lambda p: p.unlink()):
+        corrupt(data / "hotel.txt")
+        log = []
+        assert run(root, log=log.append, **FAST) == 1
+        assert len(log) == 1 and log[0].startswith(f"crowdbench leaderboard: error: {data / 'hotel.txt'}: "), log
+        assert sorted(p.name for p in root.iterdir()) == ["submissions"]  # nothing written

@@ -45,6 +45,26 @@ def _targets(readme, docs, log) -> list[tuple[Path, str]] | None:
     return targets
 
 
+def _scene_problem(scenes: list[str]) -> str | None:
+    """``file: problem`` of the first evaluation scene (recording, v1 / v2 episode list) that cannot be
+    loaded, or None; checked once up front so that a broken install stops the run, not every submission."""
+    from crowdbench.data import scenes as data
+    from crowdbench.envs.protocol import protocol_path, v2_path
+
+    for s in scenes:
+        try:
+            files = [(data.DATA_DIR / f"{s}.txt", lambda s=s: data.read_rows(s)), (protocol_path(s), None),
+                     (v2_path(s), None)]
+        except ValueError as e:  # an unknown scene
+            return f"scene {s!r}: {e}"
+        for path, load in files:
+            try:
+                load() if load else json.loads(path.read_text())
+            except (OSError, ValueError) as e:  # missing, sha256 mismatch, not JSON
+                return f"{path}: {' '.join(str(e).replace(str(path), 'the file').split())}"
+    return None
+
+
 def run(root: Path = DEFAULT_ROOT, only: list[str] | None = None, check: bool = False, force: bool = False,
         episodes: int | None = None, scenes: list[str] | None = None, log=None, jobs: int = 1,
         launcher: str = "local", address: str | None = None, readme: Path | None = None,
@@ -79,6 +99,10 @@ def run(root: Path = DEFAULT_ROOT, only: list[str] | None = None, check: bool = 
         return 1
     targets = _targets(readme, docs, log) if "v1" in tracks else []
     if targets is None:
+        return 1
+    problem = _scene_problem(scenes)
+    if problem:
+        log(f"crowdbench leaderboard: error: {problem}")
         return 1
     results: dict[str, list[dict]] = {t: [] for t in TRACK_ORDER}
     rejected: list[tuple[str | None, str]] = []  # (track or None for every track, message)

@@ -1,6 +1,6 @@
 """Rendering: the generated leaderboard/README.md tables, the plot, the generated blocks of the
 top-level README and the docs (:data:`BLOCKS`), and row-level diffs for ``--check``. Pure functions of
-the results (no evaluation).
+the results (no evaluation). Submission text enters the markdown escaped (:func:`~.text.md`).
 """
 
 from __future__ import annotations
@@ -12,7 +12,8 @@ import torch
 
 from crowdbench.envs.protocol import EVAL_SCENES, PAPER_SCENES, PROTOCOL_VERSION
 from crowdbench.eval import rate_ci
-from crowdbench.leaderboard.schema import KINDS
+from crowdbench.leaderboard.schema import KINDS, link_problem
+from crowdbench.leaderboard.text import diff_rows, md  # noqa: F401 - diff_rows: render.diff_rows for --check
 
 
 def markers(name: str) -> tuple[str, str]:
@@ -62,12 +63,13 @@ def seed_cell(values: list[float | None], digits: int) -> tuple[float | None, st
     return m, f"{m:.{digits}f} ± {sd:.{digits}f}"
 
 
-def label(group: list[dict]) -> str:
+def label(group: list[dict], escape: bool = True) -> str:
+    """The entry's row label, markdown-escaped (``escape``; the plot's legend takes it raw)."""
     r = group[0]
     name = r["meta"]["entry"]
     if r.get("privileged") and "privileged" not in name.lower():
         name += " (PRIVILEGED)"
-    return name
+    return md(name) if escape else name
 
 
 def group_results(results: list[dict]) -> list[list[dict]]:
@@ -152,7 +154,7 @@ def render_readme(results: list[dict], rejected: list[str], scenes: list[str], e
         for g in multi:
             for r in g:
                 cells = [scene_cell(r, s, "success_rate", 3)[1] for s in scenes]
-                L.append(f"| {label(g)} | {r['meta']['submission']} | {r['submission'].get('seed', '—')} | "
+                L.append(f"| {label(g)} | {md(r['meta']['submission'])} | {md(r['submission'].get('seed', '—'))} | "
                          + " | ".join(cells) + " |")
         L.append("")
     L += ["## Submissions", "", "| submission | entry | kind | encoder | algo | seed | authors | link |",
@@ -160,15 +162,18 @@ def render_readme(results: list[dict], rejected: list[str], scenes: list[str], e
     for g in groups:
         for r in g:
             d = r["submission"]
-            authors = d["authors"] if isinstance(d["authors"], str) else ", ".join(d["authors"])
-            kind = d["kind"] + (" (privileged)" if d.get("privileged") else "")
-            L.append(f"| {d['name']} | {label(g)} | {kind} | {d.get('encoder', d.get('policy', '—'))} | "
-                     f"{d.get('algo', '—')} | {d.get('seed', '—')} | {authors} | {d.get('link', '—')} |")
+            authors = d["authors"] if isinstance(d["authors"], str) else ", ".join(map(str, d["authors"]))
+            kind, link = d["kind"] + (" (privileged)" if d.get("privileged") else ""), d.get("link", "—")
+            cells = [d["name"], kind, d.get("encoder", d.get("policy", "—")), d.get("algo", "—"), d.get("seed", "—"),
+                     authors]
+            name, kind, enc, algo, seed, authors = map(md, cells)  # a valid link needs no escaping (LINK_RE)
+            L.append(f"| {name} | {label(g)} | {kind} | {enc} | {algo} | {seed} | {authors} | "
+                     f"{link if link == '—' or not link_problem(link) else md(link)} |")
     L.append("")
     if missing:
-        L += ["## Not evaluated", "", *[f"- {m}" for m in missing], ""]
+        L += ["## Not evaluated", "", *[f"- {m}" for m in missing], ""]  # harness text of validated names
     if rejected:
-        L += ["## Rejected submissions", "", *[f"- {e}" for e in rejected], ""]
+        L += ["## Rejected submissions", "", *[f"- {md(e)}" for e in rejected], ""]
     return "\n".join(L)
 
 
@@ -197,7 +202,7 @@ def plot(results: list[dict], scenes: list[str], out: Path) -> None:
                 lo.append(max(m - a, 0))
                 hi.append(max(b - m, 0))
             ax.bar([x + (i - (len(groups) - 1) / 2) * width for x in xs], means, width, yerr=[lo, hi], capsize=2,
-                   label=label(g), color=plt.get_cmap("tab20")(i % 20))
+                   label=label(g, escape=False).replace("$", r"\$"), color=plt.get_cmap("tab20")(i % 20))
     for ax, title in zip(axes, ("success rate (95% CI; seeds: ± sd)", "dangers per episode"), strict=True):
         ax.set_xticks(list(xs), scenes, rotation=30, ha="right")
         ax.set_title(title)
@@ -210,32 +215,6 @@ def plot(results: list[dict], scenes: list[str], out: Path) -> None:
     fig.tight_layout(rect=(0, 0.04 + 0.035 * math.ceil(len(groups) / ncol), 1, 1))
     fig.savefig(out, dpi=110, metadata={"Software": None})
     plt.close(fig)
-
-
-def diff_rows(old: str, new: str) -> list[str]:
-    """Rows that differ between two generated READMEs, named by section and first cell."""
-    def rows(text):
-        out, section = {}, ""
-        for line in text.splitlines():
-            if line.startswith("#"):
-                section = line.lstrip("# ").strip()
-            elif line.startswith("| ") and not line.startswith("|---"):
-                key = (section, line.split("|")[1].strip())
-                while key in out:
-                    key = (key[0], key[1] + "'")
-                out[key] = line
-            elif line.strip():
-                out[(section, line.strip()[:60])] = line
-        return out
-
-    a, b = rows(old), rows(new)
-    msgs = []
-    for key in list(dict.fromkeys([*a, *b])):
-        if a.get(key) != b.get(key):
-            state = "missing in committed" if key not in a else "missing in fresh" if key not in b else "differs"
-            msgs.append(f"[{key[0]}] row '{key[1]}': {state}" +
-                        (f"\n    committed: {a[key]}\n    fresh:     {b[key]}" if state == "differs" else ""))
-    return msgs
 
 
 # ---------------------------------------------------------------------------------- README block
@@ -338,7 +317,7 @@ def baseline_table(results: list[dict], scenes: list[str], metric: str, digits: 
     head = ["policy", *scenes, *(["avg (paper scenes)"] if with_avg else [])]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in results:
-        cells = [r["submission"].get("policy", r["meta"]["submission"])]
+        cells = [md(r["submission"].get("policy", r["meta"]["submission"]))]
         cells += [scene_cell(r, s, metric, digits)[1] for s in scenes]
         if with_avg:
             cells.append(fmt(average_cell(r, metric, digits)[0], digits))
@@ -353,7 +332,7 @@ def render_docs_block(results: list[dict], scenes: list[str], episodes: int | No
     baselines = [r for g in groups for r in g if r["meta"]["kind"] == "baseline"]
     L = [*_subset_note(scenes, episodes), *summary_table(groups), "", "## Baselines", "",
          ("From `leaderboard/results/<name>/results.json` of the baseline submissions "
-          f"({', '.join(r['meta']['submission'] for r in baselines)}): {episodes or 250} episodes per scene, "
+          f"({', '.join(md(r['meta']['submission']) for r in baselines)}): {episodes or 250} episodes per scene, "
           "mean [95% interval] (Wilson for rates, normal approximation for means); the last column is the "
           "mean over the paper scenes.")]
     for metric, title, digits in BASELINE_METRICS:

@@ -1,20 +1,26 @@
 """Submissions: the ``submission.yaml`` schema, its validation, reading and writing a submission.
 
-Field reference: docs/submitting.md section 2. Every rejection is a :class:`SubmissionError`,
-one line naming the file and the field.
+Field reference and rules: docs/submitting.md section 2. Every rejection is a :class:`SubmissionError`,
+one line naming the file and the field, of bounded length (values are cut short, :func:`short`).
+A submission is confined to its directory: its name, files and encoder module (:func:`inside`).
 """
 
 from __future__ import annotations
 
-import importlib
+import hashlib
+import importlib.util
+import re
+import shutil
 import sys
 from dataclasses import dataclass, field
 from importlib import metadata
 from pathlib import Path
+from urllib.parse import urlsplit
 
 import yaml
 
 from crowdbench import policies
+from crowdbench.leaderboard.text import bad_char, one_line, short
 from crowdbench.leaderboard.tracks import TRACK_ORDER, trained_track
 
 PACKAGE_DIR = Path(__file__).resolve().parents[1]
@@ -25,15 +31,30 @@ BASELINE_POLICIES = policies.BASELINES
 ALGOS = ("td3", "ddpg", "sac")
 MAX_LEN = 200  # characters of a one-line string field
 MAX_LEN_FIELD = {"notes": 2000}
+MULTILINE = ("notes",)  # the only string field that may hold newlines (it is never shown in a table)
+MAX_BYTES = 64 * 1024  # of submission.yaml
+MAX_DEPTH = 8  # nesting of YAML collections
+MAX_ITEMS = {"authors": 20, "overrides": 200}
+MAX_MESSAGE = 320  # characters of a SubmissionError's problem
+NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")  # and no "..": a directory name, never a path
+NAME_RULE = "1-64 letters, digits, '_', '.', '-', starting with a letter or digit, no '..'"
+WORD_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")  # encoder names, entry-point groups
+IMPORT_RE = re.compile(r"[A-Za-z_]\w*(\.[A-Za-z_]\w*)*:[A-Za-z_]\w*", re.ASCII)
+# http(s), a host, then characters that need no escaping in markdown (no space, quote, <, >, |, [, ], `, *)
+LINK_RE = re.compile(r"https?://[A-Za-z0-9\-._~:/?#@!$&+,;=%()]+")
+LINK_RULE = "an http:// or https:// URL with a host (no spaces, quotes, <, >, |, [, ], `, *)"
+SEED_RANGE = (0, 2 ** 63)
 
 
 class SubmissionError(Exception):
-    """A rejected submission: ``path: field 'x': problem`` on one line."""
+    """A rejected submission: ``path: field 'x': problem`` on one line of bounded length."""
 
     def __init__(self, path: Path | str, fld: str | None, message: str):
-        self.path, self.field, self.message = str(path), fld, " ".join(str(message).split())
-        where = f"field '{fld}': " if fld else ""
-        super().__init__(f"{self.path}: {where}{self.message}")
+        self.path, self.field, self.message = str(path), fld, one_line(message)
+        if len(self.message) > MAX_MESSAGE:
+            self.message = self.message[:MAX_MESSAGE] + "..."
+        where = f"field '{one_line(fld)[:60]}': " if fld else ""
+        super().__init__(f"{one_line(self.path)}: {where}{self.message}")
 
     def __reduce__(self):  # the custom __init__ needs its three parts to survive pickling (worker processes)
         return SubmissionError, (self.path, self.field, self.message)
@@ -74,6 +95,57 @@ SCHEMA: dict[str, tuple[tuple, tuple, str]] = {
 LEARNED_ONLY = ("encoder", "encoder_import", "encoder_entry_points", "algo", "checkpoint", "experiment", "track")
 
 
+def name_problem(name) -> str | None:
+    """Why ``name`` is not a valid submission (directory) name, or None."""
+    if isinstance(name, str) and NAME_RE.fullmatch(name) and ".." not in name:
+        return None
+    return f"{short(name)} is not a valid submission name ({NAME_RULE})"
+
+
+def link_problem(link) -> str | None:
+    """Why ``link`` is not an acceptable ``link`` (an http(s) URL with a host), or None."""
+    try:
+        parts = urlsplit(link) if isinstance(link, str) and LINK_RE.fullmatch(link) else None
+        ok = parts is not None and bool(parts.hostname) and (parts.port or 1) > 0
+    except ValueError:  # e.g. a port that is not a number
+        ok = False
+    return None if ok else f"must be {LINK_RULE}, got {short(link)}"
+
+
+def _text_problem(key: str, v: str) -> str | None:
+    limit = MAX_LEN_FIELD.get(key, MAX_LEN)
+    if not 0 < len(v) <= limit:
+        return f"must be a non-empty string of at most {limit} characters, got {len(v)}"
+    if any(bad_char(c) and not (key in MULTILINE and c in "\n\t") for c in v):
+        return f"must be one line of printable text (no newline or control character), got {short(v)}"
+    return None
+
+
+def _list_problem(key: str, v: list) -> str | None:
+    if len(v) > MAX_ITEMS[key]:
+        return f"at most {MAX_ITEMS[key]} entries, got {len(v)}"
+    for item in v:
+        problem = _text_problem(key, item) if isinstance(item, str) else f"entries must be strings, got {short(item)}"
+        if problem:
+            return problem
+    return None
+
+
+def _mapping_problem(v: dict) -> str | None:
+    """Baseline / oracle overrides: at most 50 ``{parameter: scalar or short list of scalars}``."""
+    scalar = (bool, int, float, str, type(None))
+    if len(v) > 50:
+        return f"at most 50 parameters, got {len(v)}"
+    for k, x in v.items():
+        if not (isinstance(k, str) and WORD_RE.fullmatch(k)):
+            return f"parameter names are words ({WORD_RE.pattern}), got {short(k)}"
+        items = x if isinstance(x, list) and len(x) <= 20 else [x]
+        if not all(isinstance(i, scalar) and not (isinstance(i, str) and _text_problem("overrides", i))
+                   for i in items):
+            return f"{k!r}: a number, true/false, a one-line string or a list of at most 20 of these, got {short(x)}"
+    return None
+
+
 def _type_name(types: tuple) -> str:
     return " or ".join({str: "a string", int: "an integer", bool: "true/false", list: "a list",
                         dict: "a mapping"}[t] for t in types)
@@ -85,12 +157,13 @@ def validate_schema(path: Path, data) -> dict:
         raise SubmissionError(path, None, f"expected a mapping of fields, got {type(data).__name__}")
     for key in data:
         if key not in SCHEMA:
-            raise SubmissionError(path, str(key), f"unknown field; valid fields: {', '.join(SCHEMA)}")
+            raise SubmissionError(path, key if isinstance(key, str) else short(key),
+                                  f"unknown field; valid fields: {', '.join(SCHEMA)}")
     kind = data.get("kind")
     if kind is None:
         raise SubmissionError(path, "kind", "missing (baseline | learned | oracle)")
     if kind not in KINDS:
-        raise SubmissionError(path, "kind", f"{kind!r} is not one of {', '.join(KINDS)}")
+        raise SubmissionError(path, "kind", f"{short(kind)} is not one of {', '.join(KINDS)}")
     for key, (types, required, desc) in SCHEMA.items():
         if key not in data or data[key] is None:
             if kind in required:
@@ -98,28 +171,38 @@ def validate_schema(path: Path, data) -> dict:
             continue
         v = data[key]
         if not isinstance(v, types) or (int in types and isinstance(v, bool) and bool not in types):
-            raise SubmissionError(path, key, f"must be {_type_name(types)}, got {v!r}")
-        limit = MAX_LEN_FIELD.get(key, MAX_LEN)
-        if isinstance(v, str) and not 0 < len(v) <= limit:
-            raise SubmissionError(path, key, f"must be a non-empty string of at most {limit} characters, "
-                                             f"got {len(v)}")
+            raise SubmissionError(path, key, f"must be {_type_name(types)}, got {short(v)}")
+        problem = _text_problem(key, v) if isinstance(v, str) else _list_problem(key, v) if isinstance(v, list) \
+            else _mapping_problem(v) if isinstance(v, dict) else None
+        if problem:
+            raise SubmissionError(path, key, problem)
+    if name_problem(data["name"]):
+        raise SubmissionError(path, "name", name_problem(data["name"]))
     if data["name"] != path.parent.name:
-        raise SubmissionError(path, "name", f"{data['name']!r} differs from the directory name {path.parent.name!r}")
+        raise SubmissionError(path, "name", f"{data['name']!r} differs from the directory name {short(path.parent.name)}")
     authors = data["authors"]
-    if isinstance(authors, list) and (not authors or not all(isinstance(a, str) and a for a in authors)):
+    if isinstance(authors, list) and not authors:
         raise SubmissionError(path, "authors", "must be a non-empty list of names")
+    if "link" in data and link_problem(data["link"]):
+        raise SubmissionError(path, "link", link_problem(data["link"]))
+    if "seed" in data and not SEED_RANGE[0] <= data["seed"] < SEED_RANGE[1]:
+        raise SubmissionError(path, "seed", f"must lie in [0, 2**63), got {short(data['seed'])}")
+    for key, rx in (("encoder", WORD_RE), ("encoder_entry_points", WORD_RE), ("encoder_import", IMPORT_RE)):
+        if key in data and not rx.fullmatch(data[key]):
+            what = "is not of the form module:Class" if key == "encoder_import" else f"must match {rx.pattern}"
+            raise SubmissionError(path, key, f"{short(data[key])} {what}")
     priv = data.get("privileged", False)
     if kind == "oracle" and priv is not True:
         raise SubmissionError(path, "privileged", "the oracle knows the humans' future: it must say privileged: true")
     if kind != "oracle" and priv:
         raise SubmissionError(path, "privileged", "only the oracle may be privileged")
     if kind == "baseline" and data["policy"] not in BASELINE_POLICIES:
-        raise SubmissionError(path, "policy", f"{data['policy']!r} is not a baseline; valid: "
+        raise SubmissionError(path, "policy", f"{short(data['policy'])} is not a baseline; valid: "
                                               f"{', '.join(BASELINE_POLICIES)}")
     if kind == "learned" and data.get("track", "v1") not in TRACK_ORDER:
-        raise SubmissionError(path, "track", f"{data['track']!r} is not a track; valid: {', '.join(TRACK_ORDER)}")
+        raise SubmissionError(path, "track", f"{short(data['track'])} is not a track; valid: {', '.join(TRACK_ORDER)}")
     if kind == "learned" and data["algo"] not in ALGOS:
-        raise SubmissionError(path, "algo", f"{data['algo']!r} is not one of {', '.join(ALGOS)}")
+        raise SubmissionError(path, "algo", f"{short(data['algo'])} is not one of {', '.join(ALGOS)}")
     if kind != "learned":
         for key in LEARNED_ONLY:
             if key in data:
@@ -152,24 +235,99 @@ def policy_params(path: Path, data: dict, cfg: dict | None = None) -> dict:
         raise policy_error(path, e) from None
 
 
-def read_submission(sub_dir: Path) -> Submission:
-    path = sub_dir / "submission.yaml"
+class _Loader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` without aliases and anchors (a submission has no use for them, and a few hundred
+    bytes of nested aliases expand to gigabytes) and without collections nested deeper than MAX_DEPTH."""
+
+    def compose_node(self, parent, index):
+        event = self.peek_event()
+        if isinstance(event, yaml.AliasEvent) or getattr(event, "anchor", None):
+            raise yaml.composer.ComposerError(None, None, "aliases and anchors (*x, &x) are not allowed",
+                                              event.start_mark)
+        self.depth = getattr(self, "depth", 0) + 1
+        try:
+            if self.depth > MAX_DEPTH:
+                raise yaml.composer.ComposerError(None, None, f"nested deeper than {MAX_DEPTH} levels",
+                                                  event.start_mark)
+            return super().compose_node(parent, index)
+        finally:
+            self.depth -= 1
+
+
+def load_yaml(path: Path):
+    """The parsed ``submission.yaml`` at ``path``: a regular UTF-8 file of at most MAX_BYTES, no aliases."""
+    if path.is_symlink() or (path.exists() and not path.is_file()):
+        raise SubmissionError(path, None, "submission.yaml must be a regular file, not a symlink or a directory")
     if not path.is_file():
         raise SubmissionError(path, None, "missing submission.yaml")
+    with path.open("rb") as f:
+        raw = f.read(MAX_BYTES + 1)
+    if len(raw) > MAX_BYTES:
+        raise SubmissionError(path, None, f"larger than {MAX_BYTES} bytes")
     try:
-        data = yaml.safe_load(path.read_text())
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise SubmissionError(path, None, f"not UTF-8 text (byte {e.start})") from None
+    try:
+        return yaml.load(text, Loader=_Loader)  # a SafeLoader
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
         problem = getattr(e, "problem", None) or str(e)
         raise SubmissionError(path, None, f"malformed YAML{where}: {problem}") from None
-    data = validate_schema(path, data)
+    except Exception as e:  # noqa: BLE001 - e.g. an integer of 50,000 digits: the file's problem, one line
+        raise SubmissionError(path, None, f"malformed YAML: {type(e).__name__}: {e}") \
+            from None
+
+
+def inside(sub_dir: Path, rel: str, yaml_path: Path, fld: str) -> Path:
+    """``sub_dir / rel`` if it lies inside ``sub_dir`` without a symlink on the way (it need not exist);
+    else a SubmissionError naming ``fld``."""
+    p = Path(rel)
+    if not rel or p.is_absolute() or ".." in p.parts:
+        raise SubmissionError(yaml_path, fld, f"{short(rel)} must be a relative path inside the submission "
+                                              "directory (not absolute, no '..')")
+    cur = sub_dir
+    for part in p.parts:
+        cur = cur / part
+        if cur.is_symlink():
+            raise SubmissionError(yaml_path, fld, f"{short(str(cur.relative_to(sub_dir)))} is a symlink: a "
+                                                  "submission's files must lie inside the submission directory")
+    if not cur.resolve().is_relative_to(sub_dir.resolve()):
+        raise SubmissionError(yaml_path, fld, f"{short(rel)} is not inside the submission directory")
+    return cur
+
+
+def encoder_files(sub: Submission) -> list[Path]:
+    """The file of ``sub``'s ``encoder_import`` module, found statically (never imported): ``pkg.mod`` is
+    ``<dir>/pkg/mod.py`` or ``<dir>/pkg/mod/__init__.py``, inside the submission directory, no symlinks."""
+    spec = sub.data.get("encoder_import")
+    if not spec:
+        return []
+    mod = spec.partition(":")[0]
+    rel = "/".join(mod.split("."))
+    for candidate in (f"{rel}.py", f"{rel}/__init__.py"):
+        path = inside(sub.dir, candidate, sub.yaml_path, "encoder_import")
+        if path.is_file():
+            return [path]
+    raise SubmissionError(sub.yaml_path, "encoder_import", f"{mod!r} is not a module file inside the submission "
+                                                           f"directory (expected {rel}.py or {rel}/__init__.py)")
+
+
+def read_submission(sub_dir: Path) -> Submission:
+    path = sub_dir / "submission.yaml"
+    if name_problem(sub_dir.name):
+        raise SubmissionError(path, "name", f"directory {name_problem(sub_dir.name)}")
+    if sub_dir.is_symlink():
+        raise SubmissionError(path, None, "the submission directory is a symlink: it must be a directory")
+    data = validate_schema(path, load_yaml(path))
     sub = Submission(name=data["name"], dir=sub_dir, yaml_path=path, data=data, kind=data["kind"],
                      entry=data.get("entry") or data["name"])
     if sub.kind == "learned":
-        sub.checkpoint = sub_dir / data.get("checkpoint", "checkpoint.pt")
+        sub.checkpoint = inside(sub_dir, data.get("checkpoint", "checkpoint.pt"), path, "checkpoint")
         if not sub.checkpoint.is_file():
             raise SubmissionError(path, "checkpoint", f"checkpoint file not found: {sub.checkpoint}")
+        sub.extra_files = encoder_files(sub)
     else:
         policy_params(path, data)
     return sub
@@ -187,12 +345,7 @@ def make_submission(run_dir: Path, name: str, entry: str, authors: list[str], ov
 
     state = load_checkpoint(Path(run_dir) / "checkpoint.pt")
     cfg = state["config"]
-    sub_dir = Path(root) / "submissions" / name
-    if sub_dir.exists():
-        raise SubmissionError(sub_dir, None, "already exists; remove it first to replace the submission")
-    sub_dir.mkdir(parents=True)
-    keep = ("config", "actor", "frames", "updates", "wall_time_s")
-    save_checkpoint(sub_dir / "checkpoint.pt", {k: state[k] for k in keep if k in state})
+    sub_dir = Path(root) / "submissions" / str(name)
     data = {"name": name, "kind": "learned", "entry": entry, "encoder": cfg["encoder"]["name"],
             "algo": cfg["algo"]["name"], "seed": int(cfg["seed"]), "overrides": overrides, "authors": authors}
     track = trained_track(cfg)
@@ -200,8 +353,20 @@ def make_submission(run_dir: Path, name: str, entry: str, authors: list[str], ov
                        ("notes", notes)):
         if value:
             data[key] = value
-    (sub_dir / "submission.yaml").write_text(yaml.safe_dump(data, sort_keys=False, width=120))
-    read_submission(sub_dir)
+    if name_problem(name):  # before anything is written: "../../x" or "/abs" would leave the leaderboard
+        raise SubmissionError(Path(root) / "submissions", "name", name_problem(name))
+    validate_schema(sub_dir / "submission.yaml", data)
+    if sub_dir.exists() or sub_dir.is_symlink():
+        raise SubmissionError(sub_dir, None, "already exists; remove it first to replace the submission")
+    sub_dir.mkdir(parents=True)
+    try:
+        keep = ("config", "actor", "frames", "updates", "wall_time_s")
+        save_checkpoint(sub_dir / "checkpoint.pt", {k: state[k] for k in keep if k in state})
+        (sub_dir / "submission.yaml").write_text(yaml.safe_dump(data, sort_keys=False, width=120))
+        read_submission(sub_dir)
+    except BaseException:  # a submission the harness would refuse is not left behind
+        shutil.rmtree(sub_dir, ignore_errors=True)
+        raise
     return sub_dir
 
 
@@ -216,23 +381,15 @@ def register_encoder(sub: Submission) -> None:
     if "encoder_import" in data:
         spec = data["encoder_import"]
         mod_name, _, attr = spec.partition(":")
-        if not mod_name or not attr:
-            raise SubmissionError(path, "encoder_import", f"{spec!r} is not of the form module:Class")
-        added = [p for p in (str(sub.dir), str(REPO_DIR), str(Path.cwd())) if p not in sys.path]
-        sys.path[:0] = added
-        try:
-            module = importlib.import_module(mod_name)
-        except Exception as e:  # noqa: BLE001 - any import failure is the submission's error
-            raise SubmissionError(path, "encoder_import", f"cannot import {mod_name!r}: {type(e).__name__}: {e}") \
-                from None
-        finally:
-            for p in added:
-                sys.path.remove(p)
+        if not IMPORT_RE.fullmatch(spec):
+            raise SubmissionError(path, "encoder_import", f"{short(spec)} is not of the form module:Class")
+        (file,) = encoder_files(sub)
+        module = _load_module(path, file, mod_name, sub.dir)
         cls = getattr(module, attr, None)
         if cls is None:
             raise SubmissionError(path, "encoder_import", f"module {mod_name!r} has no attribute {attr!r}")
-        if getattr(module, "__file__", None) and Path(module.__file__) not in sub.extra_files:
-            sub.extra_files.append(Path(module.__file__))
+        if file not in sub.extra_files:
+            sub.extra_files.append(file)
     elif "encoder_entry_points" in data:
         group = data["encoder_entry_points"]
         found = [ep for ep in metadata.entry_points(group=group) if ep.name == name]
@@ -254,3 +411,30 @@ def register_encoder(sub: Submission) -> None:
     if name not in ENCODERS:
         raise SubmissionError(path, "encoder", f"unknown encoder {name!r}; registered: {', '.join(sorted(ENCODERS))} "
                                                "(an external encoder needs encoder_import or encoder_entry_points)")
+
+
+def _load_module(path: Path, file: Path, mod_name: str, sub_dir: Path):
+    """The module in ``file`` (a submission's encoder), loaded from that file under a name unique to its
+    content (``submission_encoder_<sha256>``), never through ``sys.modules[mod_name]``: two submissions
+    that both ship a different ``my_encoder.py`` each get their own, while the same code (loaded again by
+    the job, or a copy of the leaderboard) gives the same module and class. While it runs, the submission
+    directory, the repository root and the current directory are on ``sys.path`` (its own imports)."""
+    key = hashlib.sha256(mod_name.encode() + b"\0" + file.read_bytes()).hexdigest()[:16]
+    unique = f"submission_encoder_{key}"
+    if unique in sys.modules:
+        return sys.modules[unique]
+    spec = importlib.util.spec_from_file_location(unique, file)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[unique] = module  # (dataclasses and pickling look a class's module up there)
+    added = [p for p in (str(sub_dir), str(REPO_DIR), str(Path.cwd())) if p not in sys.path]
+    sys.path[:0] = added
+    try:
+        spec.loader.exec_module(module)
+    except Exception as e:  # noqa: BLE001 - any import failure is the submission's error
+        del sys.modules[unique]
+        raise SubmissionError(path, "encoder_import", f"cannot import {mod_name!r}: {type(e).__name__}: {e}") \
+            from None
+    finally:
+        for p in added:
+            sys.path.remove(p)
+    return module

@@ -15,6 +15,7 @@ from crowdbench.leaderboard.render import (
     scene_cell,
     seed_cell,
 )
+from crowdbench.leaderboard.text import md
 from crowdbench.leaderboard.tracks import TRACK_ORDER, TRACKS, Track
 
 SUMMARY = [("success_rate", "success", 3), ("collision_rate", "collision", 3), ("timeout_rate", "timeout", 3),
@@ -60,7 +61,7 @@ def track_table(track: Track, results: list[dict], scenes: list[str]) -> list[st
     L += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for g in groups:
         origin = trained_on(g[0]) or "—"
-        cells = [label(g), origin, str(len(g))] + [group_cell(g, track, m, d)[1] for m, _, d in cols]
+        cells = [label(g), md(origin), str(len(g))] + [group_cell(g, track, m, d)[1] for m, _, d in cols]
         L.append("| " + " | ".join(cells) + " |")
     if track.replay and len(scenes) > 1:
         L += ["", "Success rate per scene:", "", *metric_table(groups, scenes, "success_rate", 3)]
@@ -88,7 +89,7 @@ def transfer_table(by_track: dict[str, list[dict]]) -> list[str]:
             g = sorted(per.get(t, []), key=lambda r: r["meta"]["submission"])
             c = group_cell(g, TRACKS[t], "success_rate", 3)[1] if g else "—"
             cells.append(f"**{c}**" if t == origin and c != "—" else c)
-        rows.append((TRACK_ORDER.index(origin), entry.lower(), [entry, f"`{origin}`", str(seeds), *cells]))
+        rows.append((TRACK_ORDER.index(origin), entry.lower(), [md(entry), f"`{origin}`", str(seeds), *cells]))
     L += ["| " + " | ".join(c) + " |" for *_, c in sorted(rows)]
     return L
 
@@ -116,7 +117,7 @@ def render_tracks(by_track: dict[str, list[dict]], scenes: list[str], episodes: 
     if missing:
         L += ["## Not evaluated", "", *(f"- {m}" for m in missing), ""]
     if rejected:
-        L += ["## Rejected", "", *(f"- {m}" for m in rejected), ""]
+        L += ["## Rejected", "", *(f"- {md(m)}" for m in rejected), ""]
     return "\n".join(L)
 
 
