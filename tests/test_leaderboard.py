@@ -153,32 +153,44 @@ def test_seeds_grouped(tmp_path):
 
 
 def test_external_encoder_import_and_entry_point(tmp_path, monkeypatch):
+    """Both ways of naming an external encoder; its code is imported by the submission's worker
+    process only, never by the harness."""
     import sys
+
+    import crowdbench.leaderboard.worker as worker
 
     monkeypatch.syspath_prepend(str(REPO))
     from examples.tiny_encoder import TinyEncoder
 
+    tiny_src = (REPO / "examples" / "tiny_encoder.py").read_text()
     root = tmp_path / "lb"
     enc = {"name": "tiny_example", "dim": 8}
     monkeypatch.setitem(ENCODERS, "tiny_example", TinyEncoder)  # to build the toy checkpoint; removed after
     d = write_yaml(root, "tiny", learned_yaml("tiny", "tiny_example", "encoder_import: tiny_encoder:TinyEncoder\n"))
-    (d / "tiny_encoder.py").write_text((REPO / "examples" / "tiny_encoder.py").read_text())  # a file next to the yaml
+    (d / "tiny_encoder.py").write_text(tiny_src)  # a file next to the yaml
     toy_checkpoint(d / "checkpoint.pt", enc)
-    ep = importlib.metadata.EntryPoint(name="tiny_ep", value="examples.tiny_encoder:TinyEncoder",
-                                       group="crowdbench.encoders")
-    monkeypatch.setattr(importlib.metadata, "entry_points", lambda group=None: [ep] if group == ep.group else [])
+    # an installed package advertising the encoder: a distribution on the worker's path
+    site = tmp_path / "site"
+    (site / "tinyep-0.1.dist-info").mkdir(parents=True)
+    (site / "tinyep-0.1.dist-info" / "METADATA").write_text("Metadata-Version: 2.1\nName: tinyep\nVersion: 0.1\n")
+    (site / "tinyep-0.1.dist-info" / "entry_points.txt").write_text(
+        "[crowdbench.encoders]\ntiny_ep = tinyep_encoder:TinyEncoder\n")
+    (site / "tinyep_encoder.py").write_text(tiny_src)
+    environment = worker.environment
+    monkeypatch.setattr(worker, "environment", lambda scratch: {
+        **environment(scratch), "PYTHONPATH": f"{environment(scratch)['PYTHONPATH']}:{site}"})
     monkeypatch.setitem(ENCODERS, "tiny_ep", TinyEncoder)
     d = write_yaml(root, "tiny_ep", learned_yaml("tiny_ep", "tiny_ep", "encoder_entry_points: crowdbench.encoders\n")
                    .replace("Toy MLP", "Tiny (entry point)"))
     toy_checkpoint(d / "checkpoint.pt", {"name": "tiny_ep", "dim": 8})
-    del ENCODERS["tiny_example"], ENCODERS["tiny_ep"]  # the harness must register them itself
+    del ENCODERS["tiny_example"], ENCODERS["tiny_ep"]  # the worker must register them itself
     d = write_yaml(root, "tiny_bad", learned_yaml("tiny_bad", "tiny_bad", "encoder_import: examples.nothere:X\n"))
     toy_checkpoint(d / "checkpoint.pt", MLP)
     log = []
     assert run(root, log=log.append, **FAST) == 1
-    assert ENCODERS["tiny_ep"] is TinyEncoder  # the entry point's class; encoder_import: the submission's own file
-    assert ENCODERS["tiny_example"].__name__ == "TinyEncoder" and ENCODERS["tiny_example"] is not TinyEncoder
-    assert Path(sys.modules[ENCODERS["tiny_example"].__module__].__file__) == d.parent / "tiny" / "tiny_encoder.py"
+    assert "tiny_example" not in ENCODERS and "tiny_ep" not in ENCODERS  # nothing ran in the harness
+    assert not any(getattr(m, "__file__", None) and "tiny_encoder" in str(m.__file__) and "examples" not in
+                   str(m.__file__) for m in list(sys.modules.values()))
     assert any(m.startswith("tiny: evaluated") for m in log) and any(m.startswith("tiny_ep: evaluated") for m in log)
     (bad,) = [m for m in log if "tiny_bad" in m and "error" in m]
     assert "field 'encoder_import': 'examples.nothere' is not a module file inside the submission directory" in bad
