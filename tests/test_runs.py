@@ -201,6 +201,15 @@ def test_the_saved_buffer_samples_as_the_original(replay, tmp_path):
         restore_buffer(back, {**state, "frames": 428}, tmp_path / "checkpoint.pt", True, None)
 
 
+def test_resume_into_another_replay_kind_keeps_the_transitions(tmp_path):
+    train(compose([*TINY, "train.total_frames=256"]), tmp_path, progress=False)
+    train(compose([*TINY, "train.total_frames=384", "algo.replay=prioritized"]), tmp_path, resume=True,
+          progress=False)
+    state = load_checkpoint(tmp_path / "checkpoint.pt")
+    assert state["updates"] == expected_updates(384) and state["replay"]["transitions"] == 384
+    assert state["config"]["algo"]["replay"] == "prioritized"
+
+
 def test_kill_and_resume_keeps_learning(tmp_path, monkeypatch):
     """Findings 21: three interruptions (frame budgets, and a kill between writing the buffer and the
     checkpoint) end with the frames, updates and buffer of an uninterrupted run."""

@@ -199,12 +199,8 @@ def _save(fig, out: Path, dpi: int = 120, rect=(0, 0, 1, 1)) -> Path:
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.tight_layout(rect=rect)
-    try:
-        fig.savefig(out, dpi=dpi)
-    except OSError as e:
-        raise ValueError(f"cannot write {out}: {e.strerror or e}") from None
-    finally:
-        plt.close(fig)
+    fig.savefig(out, dpi=dpi)
+    plt.close(fig)
     return out
 
 
