@@ -12,7 +12,9 @@ from crowdbench.cli_eval import (  # the evaluation half of the command line
     UsageError,
     check_protocol_fixed,
     check_viz,
+    claimed_output,
     eval_options,
+    eval_output,
     make_policy,
     make_probe,
     output_dir,
@@ -91,15 +93,15 @@ def cmd_eval(overrides: list[str]) -> int:
     except ValueError as e:
         raise UsageError(str(e)) from None
     if name == "crowdnav":
-        policy = make_policy(str(cfg.policy), cfg)
-        run_crowdnav_eval(policy, cfg, output_dir(cfg, "eval-crowdnav", str(cfg.policy)), overrides)
+        with eval_output(cfg, "eval-crowdnav") as out:
+            run_crowdnav_eval(make_policy(str(cfg.policy), cfg), cfg, out, overrides)
         return 0
     if is_selfplay(cfg.env):  # every agent acts from the policy (a robot checkpoint too: the transfer test)
         if str(cfg.policy) in policies.PRIVILEGED:
             raise UsageError(f"the {cfg.policy} plans against replayed humans, not reacting agents: not available "
                              f"with env=selfplay; valid: {', '.join(policies.BASELINES)} or a checkpoint path")
-        policy = make_policy(str(cfg.policy), cfg)
-        run_selfplay_eval(policy, cfg, output_dir(cfg, "eval-selfplay", str(cfg.policy)), overrides)
+        with eval_output(cfg, "eval-selfplay") as out:
+            run_selfplay_eval(make_policy(str(cfg.policy), cfg), cfg, out, overrides)
         return 0
     eval_options(cfg)  # reject bad scenes before loading anything
     check_protocol_fixed(cfg)
@@ -107,8 +109,8 @@ def cmd_eval(overrides: list[str]) -> int:
     if protocol_humans(cfg) is not None and str(cfg.policy) in policies.PRIVILEGED:
         raise UsageError(f"the {cfg.policy} knows the humans' future, which in protocol v2 depends on the robot: "
                          "not available with env.humans=reactive_replay")
-    policy = make_policy(str(cfg.policy), cfg)
-    run_eval(policy, cfg, output_dir(cfg, "eval", str(cfg.policy)), overrides)
+    with eval_output(cfg, "eval") as out:
+        run_eval(make_policy(str(cfg.policy), cfg), cfg, out, overrides)
     return 0
 
 
@@ -139,21 +141,22 @@ def run_one(cfg, overrides: list[str]) -> dict:
         raise UsageError("resume=true needs out=<run directory> (the run to continue)")
     out = output_dir(cfg, "run", f"{cfg.algo.name}-{cfg.encoder.name}")
     try:
-        try:
-            probe = make_probe(cfg)
-        except ValueError as e:
-            raise UsageError(str(e)) from None
-        stats = train(cfg, out, resume=bool(cfg.resume), probe=probe)
-        print(f"trained {stats['frames']} frames, {stats['updates']} updates; checkpoint {out / 'checkpoint.pt'}")
-        policy = policy_from_checkpoint(out / "checkpoint.pt")
-    except ValueError as e:  # CheckpointError included: bad checkpoint, bad algo/replay/logger value
+        probe = make_probe(cfg)
+    except ValueError as e:
         raise UsageError(str(e)) from None
-    from crowdbench.envs.factory import env_name
+    with claimed_output(out):  # locked until the final evaluation is written; removed if nothing started
+        try:
+            stats = train(cfg, out, resume=bool(cfg.resume), probe=probe)
+            print(f"trained {stats['frames']} frames, {stats['updates']} updates; checkpoint {out / 'checkpoint.pt'}")
+            policy = policy_from_checkpoint(out / "checkpoint.pt")
+        except ValueError as e:  # CheckpointError included: bad checkpoint, bad algo/replay/logger value
+            raise UsageError(str(e)) from None
+        from crowdbench.envs.factory import env_name
 
-    name = env_name(cfg.env)
-    if name == "replay":  # trained with other env.reactive values: evaluated on protocol v2's (the probe too)
-        return run_eval(policy, cfg, out, overrides, strict=False)
-    return {"selfplay": run_selfplay_eval, "crowdnav": run_crowdnav_eval}[name](policy, cfg, out, overrides)
+        name = env_name(cfg.env)
+        if name == "replay":  # trained with other env.reactive values: evaluated on protocol v2's (the probe too)
+            return run_eval(policy, cfg, out, overrides, strict=False)
+        return {"selfplay": run_selfplay_eval, "crowdnav": run_crowdnav_eval}[name](policy, cfg, out, overrides)
 
 
 def cmd_leaderboard(args: list[str]) -> int:
@@ -243,7 +246,7 @@ def training_overrides(cfg: dict) -> list[str]:
     out = [f"algo={cfg['algo']['name']}", f"encoder={cfg['encoder']['name']}"]
     for group in ("algo", "encoder", "env", "train"):
         for key, value in cfg[group].items():
-            if base[group].get(key) != value and key != "max_minutes":
+            if base[group].get(key) != value and key not in ("max_minutes", "save_buffer"):
                 out.append(f"{group}.{key}={value}")
     return [*out, f"seed={cfg['seed']}"]
 

@@ -3,6 +3,7 @@ per-protocol evaluation runs (replay v1, self-play, CrowdNav) and the training p
 
 from __future__ import annotations
 
+import contextlib
 import time
 from pathlib import Path
 
@@ -31,6 +32,36 @@ def output_dir(cfg, command: str, name: str) -> Path:
         n += 1
         out = base.with_name(f"{base.name}-{n}")
     return out
+
+
+@contextlib.contextmanager
+def claimed_output(out: Path):
+    """Hold ``out`` (created if needed, locked against a concurrent run or evaluation) for the block;
+    an unwritable ``out`` or one in use is a one-line error before any work (crowdbench/outputs.py)."""
+    from crowdbench.outputs import OutputError, claim_dir
+
+    with contextlib.ExitStack() as stack:
+        try:
+            stack.enter_context(claim_dir(out))
+        except OutputError as e:
+            raise UsageError(str(e)) from None
+        yield out
+
+
+@contextlib.contextmanager
+def eval_output(cfg, command: str):
+    """``crowdbench eval``'s output directory, claimed; its ``results.json`` is never silently replaced."""
+    out = output_dir(cfg, command, str(cfg.policy))
+    with claimed_output(out):
+        results = out / "results.json"
+        if results.exists() and not cfg.eval.overwrite:
+            raise UsageError(f"{results} already exists (an earlier evaluation or run); choose another out= "
+                             "or pass eval.overwrite=true to replace it")
+        yield out
+
+
+def write_error(e: OSError, out: Path) -> UsageError:
+    return UsageError(f"cannot write {e.filename or out}: {e.strerror or e}")
 
 
 def eval_options(cfg) -> tuple[list[str], int | None]:
@@ -105,6 +136,8 @@ def run_eval(policy, cfg, out: Path, overrides: list[str], strict: bool = True) 
                            recorder_factory=recorders, humans=humans)
     except ValueError as e:  # e.g. the oracle on protocol v2, a list that is not the published one
         raise UsageError(str(e)) from None
+    except OSError as e:
+        raise write_error(e, out) from None
     print(format_table(results))
     print(f"results written to {out / 'results.json'}")
     return results
@@ -158,6 +191,8 @@ def run_selfplay_eval(policy, cfg, out: Path, overrides: list[str]) -> dict:
                                     int(e.eval_seed), out_dir=out, meta={"seed": cfg.seed, "overrides": overrides})
     except ValueError as err:
         raise UsageError(str(err)) from None
+    except OSError as err:
+        raise write_error(err, out) from None
     print(format_table(results))
     print(f"results written to {out / 'results.json'}")
     return results
@@ -179,6 +214,8 @@ def run_crowdnav_eval(policy, cfg, out: Path, overrides: list[str]) -> dict:
                                     meta={"seed": cfg.seed, "overrides": overrides})
     except ValueError as err:
         raise UsageError(str(err)) from None
+    except OSError as err:
+        raise write_error(err, out) from None
     print(format_table(results))
     print(f"results written to {out / 'results.json'}")
     return results

@@ -19,7 +19,7 @@ def test_eval_straight_writes_results(tmp_path, capsys):
 
 @pytest.mark.parametrize("args, message", [
     (["eval", "eval.scenes=[mars]"], "unknown scene 'mars'; valid scenes: eth, hotel"),
-    (["eval", "eval.bogus=1"], "unknown config key 'eval.bogus'; valid keys under 'eval': episodes, save_episodes"),
+    (["eval", "eval.bogus=1"], "unknown config key 'eval.bogus'; valid keys under 'eval': episodes, overwrite, save_episodes"),
     (["eval", "nope=1"], "unknown config key 'nope'"),
     (["eval", "env=mars"], "unknown env 'mars'; valid choices: crowdnav, replay, selfplay"),
     (["eval", "policy=teleport"], "unknown policy 'teleport'; valid: orca, straight"),

@@ -65,7 +65,7 @@ def test_a_fresh_run_never_overwrites_a_saved_one(tmp_path):
 
 
 def test_resume_checks_the_config(tmp_path):
-    """A resumed run must keep the model and task; the replay buffer (not checkpointed) may change kind."""
+    """A resumed run must keep the model and task; the replay buffer may change kind (tests/test_runs.py)."""
     base = SMALL_GCN_TD3
     train(compose([*base, "train.total_frames=256"]), tmp_path, progress=False)
     with pytest.raises(CheckpointError, match=r"config 'encoder' differs .*\(encoder\.dim\)"):

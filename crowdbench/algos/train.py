@@ -9,7 +9,6 @@ prioritised (or uniform) replay buffer, and every collected batch is followed by
 
 from __future__ import annotations
 
-import csv
 import time
 from pathlib import Path
 
@@ -22,23 +21,33 @@ from torchrl.record.loggers.csv import CSVLogger
 from tqdm import tqdm
 
 from crowdbench.algos.builders import exploration_policy
-from crowdbench.algos.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from crowdbench.algos.checkpoint import FORMAT, CheckpointError, load_checkpoint
 from crowdbench.algos.learner import Learner
 from crowdbench.algos.multiagent import agent_transitions, finished_episodes
 from crowdbench.algos.nstep import STEPS, n_step
+from crowdbench.algos.resume import (
+    check_resumable,
+    compact_storage,
+    remove_stale_buffers,
+    restore_buffer,
+    save_buffer,
+    truncate_log,
+)
 from crowdbench.envs.core import COLLISION, SUCCESS
 from crowdbench.envs.factory import make_env
 from crowdbench.envs.policy import GROUP
 from crowdbench.models.perf import tune_allocator
+from crowdbench.outputs import claim_dir, save_torch_atomic
 
 EPISODE_RETURN = (GROUP, "episode_reward")
 # the keys the losses read; everything else the env emits stays out of the replay buffer
 KEEP = [(GROUP, "observation"), (GROUP, "action"), ("next", GROUP, "observation"), ("next", GROUP, "reward"),
         ("next", GROUP, "done"), ("next", GROUP, "terminated")]
 MODEL_KEYS = ("algo", "encoder", "env")
-# keys a resumed run may change: the replay buffer is not checkpointed, so its kind (and whether the
-# losses correct for its sampling) is free, e.g. continue a prioritized run with uniform replay (docs/training.md)
+# keys a resumed run may change: the replay kind (and whether the losses correct for its sampling), e.g.
+# continue a prioritized run with uniform replay; the saved transitions move into the new buffer (docs/training.md)
 RESUME_FREE = {"algo": ("replay", "per_alpha", "per_beta", "per_weights")}
+REPLAY_KIND = ("replay", "per_alpha", "per_beta", "buffer_size")
 
 
 def make_buffer(a: DictConfig, generator: torch.Generator):
@@ -56,6 +65,7 @@ def make_buffer(a: DictConfig, generator: torch.Generator):
         rb = TensorDictReplayBuffer(storage=storage, batch_size=a.batch_size, generator=generator)
     else:
         raise ValueError(f"unknown replay {a.replay!r}; valid: prioritized, uniform")
+    compact_storage(rb)  # a saved buffer holds its transitions, not its capacity
     return rb
 
 
@@ -71,13 +81,6 @@ def make_logger(kind: str, out_dir: Path):
         except ImportError as e:
             raise ValueError(f"train.logger=tensorboard needs the tensorboard package ({e})") from None
     raise ValueError(f"unknown train.logger {kind!r}; valid: csv, tensorboard")
-
-
-def truncate_log(log_dir: Path, frames: int) -> None:
-    """After a resume, drop rows logged past the checkpoint: they are about to be logged again."""
-    for f in (log_dir / "scalars").glob("*.csv"):
-        rows = [r for r in csv.reader(f.read_text().splitlines()) if r and int(float(r[0])) <= frames]
-        f.write_text("".join(f"{r[0]},{r[1]}\n" for r in rows))
 
 
 class DurationEstimate:
@@ -117,32 +120,52 @@ class DurationEstimate:
         self.collected(0)
 
 
+def check_budget(t: DictConfig) -> None:
+    total = t.total_frames
+    if isinstance(total, bool) or not isinstance(total, int) or total < 1:
+        raise ValueError(f"train.total_frames must be a positive integer, got {total!r}")
+
+
+def load_resume_state(cfg: DictConfig, ckpt_path: Path) -> dict:
+    """The checkpoint to continue, checked: a training checkpoint whose model and task are ``cfg``'s."""
+    state = load_checkpoint(ckpt_path)
+    check_resumable(state, ckpt_path)
+    saved = OmegaConf.create(state["config"])
+    for key in MODEL_KEYS:  # the model and task must be the ones that were trained
+        before, now = OmegaConf.to_container(saved[key]), OmegaConf.to_container(cfg[key])
+        for free in RESUME_FREE.get(key, ()):
+            before.pop(free, None)
+            now.pop(free, None)
+        if before != now:
+            diff = sorted(k for k in before.keys() | now.keys() if before.get(k) != now.get(k))
+            raise CheckpointError(f"resume: config '{key}' differs from the checkpoint's in {ckpt_path} "
+                                  f"({', '.join(f'{key}.{k}' for k in diff)})")
+    return state
+
+
 def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool = True, probe=None) -> dict:
-    """Train per ``cfg`` into ``out_dir`` (``checkpoint.pt``, ``logs/``); return final stats.
+    """Train per ``cfg`` into ``out_dir`` (``checkpoint.pt``, ``replay-*/``, ``logs/``); return final stats.
 
     ``probe(actor) -> dict[str, float]``, if given, is called every ``train.probe_every`` frames
     and its scalars are logged (the CLI passes a held-out evaluation; algos do not import eval).
     Training stops at ``train.total_frames`` or after ``train.max_minutes`` of wall time.
+    ``out_dir`` is locked for the run (a second concurrent run into it fails at once); a run that fails
+    before it starts leaves no directory behind.
     """
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    check_budget(cfg.train)
+    with claim_dir(out_dir):
+        return _train(cfg, out_dir, resume, progress, probe)
+
+
+def _train(cfg: DictConfig, out_dir: Path, resume: bool, progress: bool, probe) -> dict:
     ckpt_path = out_dir / "checkpoint.pt"
     state = None
     if not resume and ckpt_path.exists():  # a fresh run would overwrite it and append to its logs
         raise CheckpointError(f"{out_dir} already holds a training run ({ckpt_path.name}); "
                               "pass resume=true to continue it, or choose another out=")
     if resume:
-        state = load_checkpoint(ckpt_path)
-        saved = OmegaConf.create(state["config"])
-        for key in MODEL_KEYS:  # the model and task must be the ones that were trained
-            before, now = OmegaConf.to_container(saved[key]), OmegaConf.to_container(cfg[key])
-            for free in RESUME_FREE.get(key, ()):
-                before.pop(free, None)
-                now.pop(free, None)
-            if before != now:
-                diff = sorted(k for k in before.keys() | now.keys() if before.get(k) != now.get(k))
-                raise CheckpointError(f"resume: config '{key}' differs from the checkpoint's in {ckpt_path} "
-                                      f"({', '.join(f'{key}.{k}' for k in diff)})")
+        state = load_resume_state(cfg, ckpt_path)
     a, t = cfg.algo, cfg.train
     tune_allocator()
     torch.manual_seed(cfg.seed)
@@ -153,15 +176,27 @@ def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool =
                    extra=(InitTracker(), RewardSum(in_keys=[(GROUP, "reward")], out_keys=[EPISODE_RETURN])))
     learner = Learner(cfg)
     actor = learner.actor
+    explore = exploration_policy(algo, actor, env.n_agents, cfg.env.v_max, a.exploration_sigma, a.exploration,
+                                 a.ou_theta)
     replay_rng = torch.Generator().manual_seed(cfg.seed)
     rb = make_buffer(a, replay_rng)
     frames = updates = 0
+    window: list[tuple[int, float]] = []  # (outcome, return) of recently finished episodes
+    restored = False
+    last_probe = 0
     if state is not None:
         learner.load_state_dict(state)
         env.sampler.load_state_dict(state["sampler"])
         torch.set_rng_state(state["torch_rng"])
-        replay_rng.set_state(state["replay_rng"])
         frames, updates = int(state["frames"]), int(state["updates"])
+        if t.save_buffer:
+            saved_algo = OmegaConf.create(state["config"]["algo"])
+            same = all(saved_algo.get(k) == a.get(k) for k in REPLAY_KIND)
+            restored = restore_buffer(rb, state, ckpt_path, same, lambda: make_buffer(saved_algo, torch.Generator()))
+        replay_rng.set_state(state["replay_rng"])
+        rb.set_rng(replay_rng)  # loads() installs a generator of its own: sample from the checkpointed one
+        window = list(zip(*state["window"], strict=True)) if "window" in state else []
+        last_probe = int(state.get("last_probe", frames))
         truncate_log(out_dir / "logs", frames)
 
     logger = make_logger(t.logger, out_dir)
@@ -169,71 +204,84 @@ def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool =
     remaining = t.total_frames - frames
     if remaining <= 0:
         return {"frames": frames, "updates": updates}
-    # the replay buffer is not checkpointed (hundreds of MB): a resumed run refills it with warm-up frames
+    # a resumed run continues the warm-up where it stopped; without its saved buffer it refills one
+    # with the policy's actions (no updates until it holds algo.warmup transitions)
+    random_frames = a.warmup if state is None else max(0, a.warmup - frames) if restored else 0
     collector = Collector(
-        env,
-        exploration_policy(algo, actor, env.n_agents, cfg.env.v_max, a.exploration_sigma, a.exploration, a.ou_theta),
-        frames_per_batch=fpb, total_frames=remaining, init_random_frames=a.warmup if state is None else 0,
+        env, explore, frames_per_batch=fpb, total_frames=remaining, init_random_frames=random_frames,
         auto_register_policy_transforms=False,
     )
 
     def save(wall_time_s: float):
-        save_checkpoint(ckpt_path, {
-            "config": OmegaConf.to_container(cfg, resolve=True), **learner.state_dict(),
-            "sampler": env.sampler.state_dict(), "torch_rng": torch.get_rng_state(),
-            "replay_rng": replay_rng.get_state(),
-            "frames": frames, "updates": updates, "wall_time_s": wall_time_s,
-        })
+        try:  # the buffer first, then the checkpoint naming it, then the old buffer goes
+            ref = save_buffer(rb, out_dir, frames, updates) if t.save_buffer else None
+            save_torch_atomic(ckpt_path, {
+                "config": OmegaConf.to_container(cfg, resolve=True), **learner.state_dict(),
+                "sampler": env.sampler.state_dict(), "torch_rng": torch.get_rng_state(),
+                "replay_rng": replay_rng.get_state(),
+                "frames": frames, "updates": updates, "wall_time_s": wall_time_s,
+                "replay": ref, "last_probe": last_probe,
+                "window": [[o for o, _ in window], [r for _, r in window]], "format": FORMAT,
+            })
+        except OSError as e:
+            kept = f"; the previous checkpoint is kept ({ckpt_path})" if ckpt_path.exists() else ""
+            raise CheckpointError(f"cannot write the checkpoint in {out_dir}: "
+                                  f"{e.strerror or e} ({e.filename or ckpt_path}){kept}") from None
+        remove_stale_buffers(out_dir, ref and ref["dir"])
 
     bar = tqdm(total=t.total_frames, initial=frames, disable=not progress, unit="frame", dynamic_ncols=True)
     eta = DurationEstimate(remaining, t.utd, a.warmup, bar.write)  # a resumed run refills warm-up frames too
-    last_ckpt, last_probe, start = frames, frames, time.time()
+    last_ckpt, start = frames, time.time()
     elapsed0 = float(state["wall_time_s"]) if state is not None else 0.0
-    window: list[tuple[int, float]] = []  # (outcome, return) of recently finished episodes
     stats: dict = {}
-    for batch in collector:
-        eta.collected(batch.numel())
-        frames += batch.numel()
-        outcome, ret = finished_episodes(batch, EPISODE_RETURN)  # per agent episode
-        window = (window + list(zip(outcome, ret, strict=True)))[-t.stats_window:]
-        if a.n_steps > 1:
-            batch = n_step(batch, a.n_steps, a.gamma)
-        rb.extend(agent_transitions(batch, KEEP + [STEPS] * (a.n_steps > 1)))
+    try:
+        for batch in collector:
+            eta.collected(batch.numel())
+            frames += batch.numel()
+            outcome, ret = finished_episodes(batch, EPISODE_RETURN)  # per agent episode
+            window = (window + list(zip(outcome, ret, strict=True)))[-t.stats_window:]
+            if a.n_steps > 1:
+                batch = n_step(batch, a.n_steps, a.gamma)
+            rb.extend(agent_transitions(batch, KEEP + [STEPS] * (a.n_steps > 1)))
 
-        logs: dict[str, float] = {}
-        if len(rb) >= a.warmup:
-            n_updates = max(1, int(t.utd * batch.numel()))
-            for _ in range(n_updates):
-                sample = rb.sample()
-                logs.update(learner.update(sample, updates))
-                updates += 1
-                if a.replay == "prioritized":
-                    rb.update_tensordict_priority(sample)
-            eta.updated(n_updates)
+            logs: dict[str, float] = {}
+            if len(rb) >= a.warmup:
+                n_updates = max(1, int(t.utd * batch.numel()))
+                for _ in range(n_updates):
+                    sample = rb.sample()
+                    logs.update(learner.update(sample, updates))
+                    updates += 1
+                    if a.replay == "prioritized":
+                        rb.update_tensordict_priority(sample)
+                eta.updated(n_updates)
 
-        if window:
-            stats = {
-                "success_rate": sum(o == SUCCESS for o, _ in window) / len(window),
-                "collision_rate": sum(o == COLLISION for o, _ in window) / len(window),
-                "episode_return": sum(r for _, r in window) / len(window),
-            }
-            logs.update(stats)
-        logs["updates"] = updates
-        logs["wall_time_s"] = wall = elapsed0 + time.time() - start
-        if probe is not None and frames - last_probe >= t.probe_every:
-            logs.update(probe(actor))
-            last_probe = frames
-        eta.lap()  # probes and checkpoints count as part of the next batch's collection time
-        for k, v in logs.items():
-            logger.log_scalar(k, v, step=frames)
-        bar.update(batch.numel())
-        bar.set_postfix({k: f"{v:.2f}" for k, v in stats.items()} | {"upd": updates})
-        if frames - last_ckpt >= t.checkpoint_every:
-            save(wall)
-            last_ckpt = frames
-        if t.max_minutes and wall >= 60 * t.max_minutes:
-            break
-    save(wall)
-    bar.close()
-    collector.shutdown()
+            if window:
+                stats = {
+                    "success_rate": sum(o == SUCCESS for o, _ in window) / len(window),
+                    "collision_rate": sum(o == COLLISION for o, _ in window) / len(window),
+                    "episode_return": sum(r for _, r in window) / len(window),
+                }
+                logs.update(stats)
+            logs["updates"] = updates
+            logs["wall_time_s"] = wall = elapsed0 + time.time() - start
+            if probe is not None and frames - last_probe >= t.probe_every:
+                logs.update(probe(actor))
+                last_probe = frames
+            eta.lap()  # probes and checkpoints count as part of the next batch's collection time
+            for k, v in logs.items():
+                logger.log_scalar(k, v, step=frames)
+            bar.update(batch.numel())
+            bar.set_postfix({k: f"{v:.2f}" for k, v in stats.items()} | {"upd": updates})
+            if frames - last_ckpt >= t.checkpoint_every:
+                save(wall)
+                last_ckpt = frames
+            if t.max_minutes and wall >= 60 * t.max_minutes:
+                break
+        save(wall)
+    except OSError as e:  # e.g. the logs' directory made read-only: one line, the last checkpoint stays
+        raise CheckpointError(f"cannot write {e.filename or out_dir}: {e.strerror or e}; the last checkpoint "
+                              f"({ckpt_path}) is kept") from None
+    finally:
+        bar.close()
+        collector.shutdown()
     return {"frames": frames, "updates": updates, **stats}

@@ -30,13 +30,15 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
+from crowdbench.outputs import check_writable_file
+
 ROBOT = "#1f5fd0"
 GOAL = "#d62728"
 TIME_CMAP = "viridis"
 SCALARS = ("logs", "scalars")
 # keys that do not change what is trained: runs differing only in these are seeds of one config
 NOT_CONFIG = ("seed", "out", "resume", "train.max_minutes", "train.total_frames", "train.checkpoint_every",
-              "train.logger", "viz", "eval")
+              "train.save_buffer", "train.logger", "viz", "eval")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -219,9 +221,11 @@ def viz_command(argv: list[str]) -> Path:
     scene, rows = pick_scene(rows, a.scene, path)
     if a.grid is not None:
         out = Path(a.out) if a.out else path.parent / "viz" / f"{scene}_grid{a.grid}.png"
+        check_writable_file(out)
         return grid_figure(rows[: a.grid], out, time_base, a.mark_every)
     row = rows[0] if a.episode is None else pick_episode(rows, a.episode, scene, path)
     out = Path(a.out) if a.out else path.parent / "viz" / f"{scene}_ep{row['episode']:03d}.png"
+    check_writable_file(out)
     return episode_figure(row, out, time_base, a.mark_every)
 
 
@@ -389,6 +393,7 @@ def plot_command(argv: list[str]) -> Path:
     p.add_argument("--smooth", type=int, default=20)
     a = p.parse_args(argv)
     out = Path(a.out) if a.out else Path(a.runs[0]) / "curves.png"
+    check_writable_file(out)
     return plot_runs([Path(r) for r in a.runs], out, a.smooth)
 
 
