@@ -127,8 +127,10 @@ def add_straight(root: Path) -> None:
                                        "authors: [crowdbench]\n")
 
 
-@pytest.mark.skipif(bubblewrap() is None, reason="needs a working bubblewrap (apt install bubblewrap)")
 def test_hostile_submissions_cannot_change_another_row(tmp_path):
+    """Confined where bubblewrap works; without it every hostile case but the file writer (whose
+    protection is the read-only file system) still applies."""
+    hostile = HOSTILE if bubblewrap() is not None else {k: v for k, v in HOSTILE.items() if k != "writer"}
     clean = tmp_path / "clean"
     add_straight(clean)
     make_learned(clean, "honest", ENCODER)
@@ -138,16 +140,16 @@ def test_hostile_submissions_cannot_change_another_row(tmp_path):
     root = tmp_path / "hostile"
     add_straight(root)
     make_learned(root, "honest", ENCODER)
-    for name, (code, _) in HOSTILE.items():
+    for name, (code, _) in hostile.items():
         make_learned(root, name, ENCODER + code)
     import crowdbench.eval
 
     eval_src = Path(crowdbench.eval.__file__).read_text()
     log: list[str] = []
-    limits = Limits(step_s=3.0, load_s=120.0, memory_gb=6.0, sandbox="bubblewrap")
+    limits = Limits(step_s=3.0, load_s=120.0, memory_gb=6.0)
     assert run(root, log=log.append, limits=limits, **FAST) == 1
     errors = [m for m in log if "error" in m]
-    for name, (_, says) in HOSTILE.items():
+    for name, (_, says) in hostile.items():
         mine = [m for m in errors if f"submissions/{name}/" in m]
         if says is None:  # harmless once isolated: evaluated like any other entry
             assert not mine and (root / "results" / name / "results.json").is_file(), (name, mine)

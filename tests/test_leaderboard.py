@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.metadata
 import re
 from pathlib import Path
 
@@ -157,7 +156,7 @@ def test_external_encoder_import_and_entry_point(tmp_path, monkeypatch):
     process only, never by the harness."""
     import sys
 
-    import crowdbench.leaderboard.worker as worker
+    from crowdbench.leaderboard import worker
 
     monkeypatch.syspath_prepend(str(REPO))
     from examples.tiny_encoder import TinyEncoder

@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 
 from crowdbench.cli import main
+from crowdbench.leaderboard.sandbox import bubblewrap
 
 ROOT = Path(__file__).resolve().parents[1]
 PLACEHOLDER = re.compile(r"\.\.\.|\b(RUN|SELFPLAY_RUN|OUT|DIR|SWEEP_DIR|NAME|LABEL|FILE|ADDR|N|S|K)\b")
@@ -68,6 +69,9 @@ INVOCATIONS: dict[str, list[list[str]]] = {
     "crowdbench leaderboard --check":
         [["leaderboard", "--check", "--root", "{lb}", "--episodes", "2", "--scenes", "hotel", "--jobs", "2",
           "--tracks", "v1"]],
+    "crowdbench leaderboard --sandbox bubblewrap":
+        [["leaderboard", "--root", "{lb}", "--episodes", "2", "--scenes", "hotel", "--tracks", "v1", "--sandbox",
+          "bubblewrap" if bubblewrap() else "none"]],
     "crowdbench leaderboard --tracks v1,v2-orca":
         [["leaderboard", "--tracks", "v1,v2-orca", "--root", "{lb}", "--episodes", "2", "--scenes", "hotel"]],
     "crowdbench run env=selfplay algo=td3 encoder=gatedgcn":
