@@ -227,7 +227,7 @@ def _check(raw: dict, sections=None, prefix: str = "") -> None:
     else:
         for group in sections:
             if isinstance(values.get(group), dict):
-                _check_bounds(selected[group], values[group], raw[group], {}, f"{prefix}{group}.")
+                _check_bounds(selected[group], values[group], raw.get(group, {}), {}, f"{prefix}{group}.")
 
 
 def validate(cfg) -> None:
@@ -235,6 +235,26 @@ def validate(cfg) -> None:
     raw = OmegaConf.to_container(cfg, resolve=False) if isinstance(cfg, DictConfig) else dict(cfg)
     raw.pop("hydra", None)
     _check(raw)
+
+
+def unknown_keys(cfg) -> list[str]:
+    """Dotted keys of a composed config that no schema declares (keys added with ``+key=value``; for a
+    shipped YAML, a schema field is missing)."""
+    raw = OmegaConf.to_container(cfg, resolve=False) if isinstance(cfg, DictConfig) else dict(cfg)
+    raw.pop("hydra", None)
+    selected, out = _selected(raw, tuple(SELECTED)), []
+
+    def walk(cls, values: dict, prefix: str) -> None:
+        hints = _hints(cls)
+        for key, value in values.items():
+            tp = selected.get(key) if cls is RootConfig and key in selected else hints.get(key)
+            if tp is None:
+                out.append(prefix + key)
+            elif isinstance(tp, type) and is_dataclass(tp) and isinstance(value, dict):
+                walk(tp, value, f"{prefix}{key}.")
+
+    walk(RootConfig, raw, "")
+    return out
 
 
 def _entries(obj, budget: int) -> int:
