@@ -45,17 +45,17 @@ def short(value, limit: int = 60) -> str:
 
 
 # --------------------------------------------------------------------------------------------- schema
-def _selected(raw: dict, groups) -> dict[str, type]:
+def _selected(raw: dict, groups, prefix: str = "") -> dict[str, type]:
     """The schema class of each of ``groups`` (``env``, ``algo``, ``encoder``), chosen by its ``name``."""
     out = {}
     for group in groups:
         schemas, default = SELECTED[group]
         section = raw.get(group, {})
         if not isinstance(section, dict):
-            raise ConfigError(f"{group}: must be a mapping of {group} keys (got {short(section)})")
+            raise ConfigError(f"{prefix}{group}: must be a mapping of {group} keys (got {short(section)})")
         name = section.get("name", default)
         if not isinstance(name, str) or name not in schemas:
-            raise ConfigError(f"{group}.name: must be one of {', '.join(schemas)} (got {short(name)})")
+            raise ConfigError(f"{prefix}{group}.name: must be one of {', '.join(schemas)} (got {short(name)})")
         out[group] = schemas[name]
     return out
 
@@ -214,7 +214,7 @@ def _check_bounds(cls, values: dict, raw, selected: dict[str, type], prefix: str
 
 # ---------------------------------------------------------------------------------------------- entry
 def _check(raw: dict, sections=None, prefix: str = "") -> None:
-    selected = _selected(raw, sections or tuple(SELECTED))
+    selected = _selected(raw, sections or tuple(SELECTED), prefix)
     if sections is not None:
         raw = {k: raw[k] for k in sections if k in raw}
     try:
