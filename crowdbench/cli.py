@@ -10,6 +10,7 @@ from pathlib import Path
 from crowdbench import policies
 from crowdbench.cli_eval import (  # the evaluation half of the command line
     UsageError,
+    check_config,
     check_protocol_fixed,
     check_viz,
     claimed_output,
@@ -87,6 +88,7 @@ def cmd_eval(overrides: list[str]) -> int:
     from crowdbench.envs.factory import env_name, is_selfplay
 
     cfg = compose(overrides)
+    check_config(cfg)
     try:
         name = env_name(cfg.env)
         check_seed(cfg.seed)
@@ -132,6 +134,7 @@ def run_one(cfg, overrides: list[str]) -> dict:
     from crowdbench.algos.checkpoint import policy_from_checkpoint
     from crowdbench.algos.train import train
 
+    check_config(cfg)  # also each run of a sweep (crowdbench/sweep.py task)
     if not isinstance(cfg.cpus, int) or cfg.cpus < 1:
         raise UsageError(f"cpus must be a positive integer, got {cfg.cpus!r}")
     torch.set_num_threads(cfg.cpus)

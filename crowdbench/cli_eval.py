@@ -15,11 +15,26 @@ class UsageError(Exception):
     """Bad input from the user: printed as one line, exit code 2."""
 
 
-def make_policy(name: str, cfg):
-    """``policy=NAME``: the registry builds it (crowdbench/policies.py) with this config's env and seed."""
+def check_config(cfg) -> None:
+    """The composed config against its schemas (crowdbench/config_schema.py: types and bounds)."""
+    from crowdbench.config_check import validate
+
     try:
+        validate(cfg)
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+
+
+def make_policy(name: str, cfg):
+    """``policy=NAME``: the registry builds it (crowdbench/policies.py) with this config's env and seed;
+    a checkpoint's config (schemas) and weights (finite) are checked first."""
+    try:
+        if name not in policies.NAMES and Path(name).is_file():
+            from crowdbench.config_check import validate_checkpoint
+
+            validate_checkpoint(name)  # ConfigError, CheckpointError: ValueErrors
         return policies.build(name, cfg)
-    except policies.PolicyError as e:
+    except (policies.PolicyError, ValueError) as e:
         raise UsageError(str(e)) from None
 
 

@@ -23,15 +23,15 @@ def test_eval_straight_writes_results(tmp_path, capsys):
     (["eval", "nope=1"], "unknown config key 'nope'"),
     (["eval", "env=mars"], "unknown env 'mars'; valid choices: crowdnav, replay, selfplay"),
     (["eval", "policy=teleport"], "unknown policy 'teleport'; valid: orca, straight"),
-    (["eval", "eval.episodes=0"], "eval.episodes must be a positive integer"),
+    (["eval", "eval.episodes=0"], "eval.episodes: must be >= 1 (got 0)"),
     (["fly"], "unknown command 'fly'"),
     (["eval", "env.time_base=0.4"], "env.time_base=0.4 conflicts with protocol v1"),
-    (["eval", "seed=abc"], "seed must be an integer in [0, 2**63), got 'abc'"),
-    (["eval", "env=selfplay", "seed=-3"], "seed must be an integer"),
-    (["eval", "eval.scenes=[]"], "eval.scenes is empty; evaluation scenes: students003"),
+    (["eval", "seed=abc"], "seed: must be an integer in [0, 2**63) (got 'abc')"),
+    (["eval", "env=selfplay", "seed=-3"], "seed: must be in [0, 2**63) (got -3)"),
+    (["eval", "eval.scenes=[]"], "eval.scenes: must not be empty (got [])"),
     (["eval", "eval.scenes=[students001]"], "eval.scenes: students001 has no protocol episode list"),
-    (["eval", "env.frame=polar"], "unknown env.frame 'polar'; valid: rotate, translate, world"),
-    (["eval", "env.v_max=-1"], "env.v_max must be > 0, got -1"),
+    (["eval", "env.frame=polar"], "env.frame: must be one of rotate, translate, world (got 'polar')"),
+    (["eval", "env.v_max=-1"], "env.v_max: must be > 0 (got -1)"),
 ])
 def test_bad_input_one_line_error(args, message, capsys, tmp_path):
     assert main(args + [f"out={tmp_path}"] if args[0] == "eval" else args) == 2

@@ -181,7 +181,7 @@ def test_reactive_values_are_checked_before_anything_runs(tmp_path, capsys):
     for cmd in ("eval", "run"):
         assert main([cmd, "env.humans=reactive_replay", "env.reactive.min_speed=fast", f"out={tmp_path / cmd}"]) == 2
         err = capsys.readouterr().err
-        assert err.count("\n") == 1 and "env.reactive.min_speed must be a number, got 'fast'" in err
+        assert err.count("\n") == 1 and "env.reactive.min_speed: must be a number >= 0 (got 'fast')" in err
         assert not (tmp_path / cmd).exists()
 
 

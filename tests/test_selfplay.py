@@ -245,7 +245,7 @@ def test_other_algos_and_encoders_train_in_selfplay_and_resume(algo, encoder, tm
 
 def test_bad_selfplay_settings_are_one_line_errors(capsys, tmp_path):
     assert main(["eval", "env=selfplay", "env.scenario=hexagon", "policy=straight", f"out={tmp_path}"]) == 2
-    assert "unknown self-play scenario 'hexagon'; valid: circle, square" in capsys.readouterr().err
+    assert "env.scenario: must be one of circle, square, mixed (got 'hexagon')" in capsys.readouterr().err
     assert main(["eval", "env=selfplay", "env.n_agents=64", "policy=straight", f"out={tmp_path}"]) == 2
     assert "raise env.circle_radius" in capsys.readouterr().err
     assert main(["eval", "env=selfplay", "policy=oracle", f"out={tmp_path}"]) == 2

@@ -390,8 +390,10 @@ def plot_command(argv: list[str]) -> Path:
     p = _Parser(prog="crowdbench plot", add_help=False)
     p.add_argument("runs", nargs="+")
     p.add_argument("--out", default=None)
-    p.add_argument("--smooth", type=int, default=20)
+    p.add_argument("--smooth", type=int, default=20, help="moving average over N logged points (N >= 1)")
     a = p.parse_args(argv)
+    if a.smooth < 1:
+        p.error(f"--smooth: must be an integer >= 1 (got {a.smooth})")
     out = Path(a.out) if a.out else Path(a.runs[0]) / "curves.png"
     check_writable_file(out)
     return plot_runs([Path(r) for r in a.runs], out, a.smooth)

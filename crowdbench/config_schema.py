@@ -1,0 +1,319 @@
+"""Typed, bounded schemas of the ``crowdbench`` config (``crowdbench/conf/``), one dataclass per group.
+
+Every key of every shipped YAML has a field here, with its type and, where a value can be wrong, its
+bounds (``metadata``: ``gt``/``ge``/``lt``/``le``, ``choices``, ``min_len``; on a list they apply to each
+item). ``env``, ``algo`` and ``encoder`` have one schema per option, chosen by their ``name`` key
+(:data:`ENV_SCHEMAS`, :data:`ALGO_SCHEMAS`, :data:`ENCODER_SCHEMAS`). The schemas are registered in
+Hydra's ConfigStore (group ``schema``: ``schema/env/replay``, ``schema/algo/td3``, ...).
+
+:mod:`crowdbench.config_check` validates configs against them (``validate``, ``validate_checkpoint``).
+
+Nothing that an evaluation imports (crowdbench/leaderboard/cache.py ``EVAL_MODULES``) imports this module.
+"""
+
+from dataclasses import dataclass, field
+from typing import Any
+
+FRAMES = ("rotate", "translate", "world")
+SEED_BOUNDS = {"ge": 0, "lt": 2**63}
+
+
+def bounded(default: Any = None, **bounds) -> Any:
+    """A dataclass field of an immutable type with ``bounds`` in its metadata: ``gt``, ``ge``, ``lt``,
+    ``le``, ``choices``, ``casefold`` (compare choices case-insensitively); a list field declares the
+    same keys (checked on each item) and ``min_len`` with ``field(default_factory=..., metadata=...)``."""
+    return field(default=default, metadata=bounds)
+
+
+# ------------------------------------------------------------------------------------------------ env
+@dataclass
+class SimEnvConfig:
+    """The simulator settings every env shares (crowdbench/envs/core.py ``SimConfig``)."""
+
+    name: str = bounded("replay", choices=("replay",))
+    batch: int = bounded(16, ge=1)  # parallel environments for training
+    dt: float = bounded(0.25, gt=0)
+    v_max: float = bounded(1.0, gt=0)
+    robot_radius: float = bounded(0.2, gt=0)
+    human_radius: float = bounded(0.1, ge=0)
+    danger_dist: float = bounded(0.2, ge=0)
+    sensing_range: float = bounded(5.0, gt=0)
+    time_limit: int = bounded(100, ge=1)  # steps
+    r_reach: float = 1.0
+    r_fail: float = -0.25
+    danger_dt_scaling: bool = False
+    frame: str = bounded("rotate", choices=FRAMES)
+    start_radius: float = bounded(4.0, gt=0)
+    time_base: str = bounded("true", choices=("true", "0.4"), casefold=True)
+
+
+@dataclass
+class ReactiveConfig:
+    """``env.reactive`` (crowdbench/envs/humans/reactive_replay.py ``ReactiveParams``)."""
+
+    model: str = bounded("orca", choices=("orca", "sfm"))
+    horizon: float = bounded(1.0, gt=0)
+    speed_factor: float = bounded(1.3, gt=0)
+    min_speed: float = bounded(1.0, ge=0)
+    neighbor_dist: float = bounded(10.0, gt=0)
+    time_horizon: float = bounded(5.0, gt=0)
+    responsibility: float = bounded(0.5, gt=0, le=1)
+    radius_margin: float = bounded(0.01, ge=0)
+
+
+@dataclass
+class ReplayEnvConfig(SimEnvConfig):
+    """``env=replay``: one robot among replayed ETH/UCY pedestrians (protocols v1 and v2)."""
+
+    scene: str = "students001"
+    humans: str = bounded("replay", choices=("replay", "reactive_replay"))
+    reactive: ReactiveConfig = field(default_factory=ReactiveConfig)
+
+
+@dataclass
+class SelfPlayEnvConfig(SimEnvConfig):
+    """``env=selfplay`` (crowdbench/envs/selfplay.py ``SelfPlayConfig``) and its evaluation set."""
+
+    name: str = bounded("selfplay", choices=("selfplay",))
+    scenario: str = bounded("circle", choices=("circle", "square", "mixed"))
+    n_agents: int = bounded(8, ge=1)
+    circle_radius: float = bounded(4.0, gt=0)
+    square_width: float = bounded(8.0, gt=0)
+    jitter: float = bounded(0.1, ge=0)
+    min_spacing: float = bounded(0.8, gt=0)
+    background: str = ""
+    done_agents: str = bounded("vanish", choices=("vanish", "obstacle"))
+    n_humans: int = bounded(0, ge=0)
+    humans: str = bounded("orca", choices=("orca", "sfm"))
+    robot_visible: bool = True
+    human_v_pref: float = bounded(1.0, gt=0)
+    eval_scenarios: list[str] = field(default_factory=lambda: ["circle", "square"], metadata={"min_len": 1,
+                                        "choices": ("circle", "square", "mixed")})
+    eval_n_agents: list[int] | None = field(default=None, metadata={"min_len": 1, "ge": 1})
+    eval_episodes: int = bounded(100, ge=1)
+    eval_seed: int = bounded(20261122, **SEED_BOUNDS)
+
+
+@dataclass
+class CrowdNavEnvConfig(SimEnvConfig):
+    """``env=crowdnav`` (crowdbench/envs/crowdnav.py ``CrowdNavConfig``) and its test cases."""
+
+    name: str = bounded("crowdnav", choices=("crowdnav",))
+    scenario: str = bounded("circle", choices=("circle", "square"))
+    n_humans: int = bounded(5, ge=1)
+    humans: str = bounded("orca", choices=("orca", "sfm"))
+    robot_visible: bool = False
+    robot_radius: float = bounded(0.3, gt=0)
+    human_radius: float = bounded(0.3, ge=0)
+    human_v_pref: float = bounded(1.0, gt=0)
+    sensing_range: float = bounded(100.0, gt=0)
+    reward: str = bounded("crowdnav", choices=("paper", "crowdnav"))
+    discomfort_factor: float = bounded(0.5, ge=0)
+    orca_neighbor_dist: float = bounded(10.0, gt=0)
+    orca_max_neighbors: int = bounded(10, ge=0)
+    orca_time_horizon: float = bounded(5.0, gt=0)
+    orca_radius_margin: float = bounded(0.01, ge=0)
+    eval_settings: list[str] | None = field(default=None, metadata={"min_len": 1})  # e.g. [circle_n5]
+    eval_episodes: int | None = bounded(None, ge=1)
+
+
+ENV_SCHEMAS: dict[str, type] = {"replay": ReplayEnvConfig, "selfplay": SelfPlayEnvConfig, "crowdnav": CrowdNavEnvConfig}
+
+
+# ---------------------------------------------------------------------------------------------- algo
+@dataclass
+class OffPolicyConfig:
+    """The keys TD3, DDPG and SAC share (crowdbench/algos/builders.py, learner.py, train.py). The shipped
+    YAMLs carry every key in every algorithm; one an algorithm does not use is still type-checked."""
+
+    name: str = bounded("td3", choices=("td3",))
+    gamma: float = bounded(0.99, gt=0, le=1)
+    lr_actor: float = bounded(1.0e-3, gt=0)
+    lr_critic: float = bounded(1.0e-3, gt=0)
+    lr_alpha: float = bounded(3.0e-4, gt=0)  # SAC's temperature (unused by TD3, DDPG)
+    tau: float = bounded(0.005, gt=0, le=1)
+    policy_delay: int = bounded(1, ge=1)
+    policy_noise: float = bounded(0.2, ge=0)
+    noise_clip: float = bounded(0.5, ge=0)
+    exploration_sigma: float = bounded(0.3, ge=0)
+    exploration: str = bounded("gaussian", choices=("gaussian", "ou"))
+    ou_theta: float = bounded(0.125, gt=0)
+    critic_lookahead: float = bounded(0.25, ge=0)  # s
+    n_steps: int = bounded(1, ge=1)
+    loss_function: str = bounded("l2", choices=("l2", "l1", "smooth_l1"))
+    alpha_init: float = bounded(1.0, gt=0)  # SAC's initial temperature (unused by TD3, DDPG)
+    batch_size: int = bounded(100, ge=1)
+    buffer_size: int = bounded(100000, ge=1)
+    warmup: int = bounded(2000, ge=0)  # frames of random actions before the first update
+    replay: str = bounded("uniform", choices=("uniform", "prioritized"))
+    per_alpha: float = bounded(0.6, ge=0, le=1)
+    per_beta: float = bounded(0.4, ge=0, le=1)
+    per_weights: bool = False
+    actor_squash: str = bounded("radial", choices=("radial", "box"))
+
+
+@dataclass
+class TD3Config(OffPolicyConfig):
+    """``algo=td3``: twin critics, delayed actor updates, target policy smoothing."""
+
+    name: str = bounded("td3", choices=("td3",))
+    policy_delay: int = bounded(2, ge=1)
+
+
+@dataclass
+class DDPGConfig(OffPolicyConfig):
+    """``algo=ddpg``: one critic; ``policy_delay``, ``policy_noise``, ``noise_clip`` are TD3's and unused."""
+
+    name: str = bounded("ddpg", choices=("ddpg",))
+
+
+@dataclass
+class SACConfig(OffPolicyConfig):
+    """``algo=sac``: twin critics, TanhNormal policy, learned temperature (``alpha_init``, ``lr_alpha``)."""
+
+    name: str = bounded("sac", choices=("sac",))
+    alpha_init: float = bounded(0.005, gt=0)
+
+
+ALGO_SCHEMAS: dict[str, type] = {"td3": TD3Config, "ddpg": DDPGConfig, "sac": SACConfig}
+
+
+# ------------------------------------------------------------------------------------------- encoder
+@dataclass
+class GCNConfig:
+    """``encoder=gcn`` (crowdbench/models/gcn.py)."""
+
+    name: str = bounded("gcn", choices=("gcn",))
+    dim: int = bounded(32, ge=1)
+    layers: int = bounded(2, ge=1)
+    k: int = bounded(8, ge=1)  # neighbour cap per node
+    radius2: float = bounded(5.0, gt=0)  # squared edge radius
+    receptive_field: bool = True
+
+
+@dataclass
+class GatedGCNConfig(GCNConfig):
+    """``encoder=gatedgcn`` (crowdbench/models/gatedgcn.py)."""
+
+    name: str = bounded("gatedgcn", choices=("gatedgcn",))
+    eps: float = bounded(1.0e-6, gt=0)  # gate normaliser
+
+
+@dataclass
+class MLPConfig:
+    """``encoder=mlp`` (crowdbench/models/mlp.py)."""
+
+    name: str = bounded("mlp", choices=("mlp",))
+    dim: int = bounded(32, ge=1)
+    hidden: list[int] = field(default_factory=lambda: [256, 256], metadata={"ge": 1})
+    max_humans: int = bounded(40, ge=0)
+
+
+ENCODER_SCHEMAS: dict[str, type] = {"gatedgcn": GatedGCNConfig, "gcn": GCNConfig, "mlp": MLPConfig}
+
+
+# ------------------------------------------------------------------------------ the other groups, root
+@dataclass
+class EvalConfig:
+    """``eval`` (the protocol's scenes are checked by name in crowdbench/cli_eval.py ``eval_options``)."""
+
+    scenes: list[str] = field(default_factory=lambda: ["students003", "zara2", "hotel", "eth"],
+                              metadata={"min_len": 1})
+    episodes: int | None = bounded(None, ge=1)
+    save_episodes: bool = False
+
+
+@dataclass
+class TrainConfig:
+    total_frames: int = bounded(143360, ge=1)
+    frames_per_batch: int = bounded(256, ge=1)
+    utd: float = bounded(0.5, ge=0)  # gradient updates per collected frame
+    checkpoint_every: int = bounded(5000, ge=1)  # frames
+    stats_window: int = bounded(200, ge=1)  # episodes
+    max_minutes: float | None = bounded(None, gt=0)
+    probe_every: int = bounded(28672, ge=1)  # frames
+    probe_scene: str = "students003"
+    probe_episodes: int = bounded(50, ge=1)
+    logger: str = bounded("csv", choices=("csv", "tensorboard"))
+    progress_reward: float = 0.1
+    human_dropout: float = bounded(0.0, ge=0, le=1)  # a probability
+
+
+@dataclass
+class VizConfig:
+    record: bool = False
+    episodes: list[int] = field(default_factory=lambda: [0], metadata={"ge": 0})  # protocol episode ids
+    scenes: list[str] | None = None
+    dir: str = "recordings"
+    trail_s: float = bounded(2.0, ge=0)
+
+
+@dataclass
+class OrcaConfig:
+    safety_margin: float = bounded(0.2, ge=0)
+    time_horizon: float = bounded(2.0, gt=0)
+    max_neighbors: int = bounded(10, ge=0)
+    neighbor_dist: float = bounded(5.0, gt=0)
+    perturb: float = bounded(1.0e-3, ge=0)
+    pref_rule: str = bounded("reach", choices=("reach", "crowdnav"))
+
+
+@dataclass
+class OracleConfig:
+    headings: int = bounded(16, ge=1)
+    # fractions of v_max
+    speeds: list[float] = field(default_factory=lambda: [1.0, 0.5], metadata={"min_len": 1, "gt": 0, "le": 1})
+    beam: int = bounded(32, ge=1)
+    cell: float = bounded(0.1, gt=0)
+    danger_cost: float = bounded(2.0, ge=0)
+    chunk: int = bounded(64, ge=1)
+
+
+@dataclass
+class SubmissionConfig:
+    experiment: str | None = None
+    method: str = "${encoder.name}_${algo.name}"
+    tag: str = ""
+    suffix: str = ""
+    name: str = "${submission.method}_${submission.tag}s${seed}"
+    entry: str | None = None
+
+
+@dataclass
+class RootConfig:
+    """``conf/config.yaml``; ``env``, ``algo``, ``encoder``: the schema their ``name`` selects."""
+
+    env: Any = None
+    eval: EvalConfig = field(default_factory=EvalConfig)
+    algo: Any = None
+    encoder: Any = None
+    train: TrainConfig = field(default_factory=TrainConfig)
+    viz: VizConfig = field(default_factory=VizConfig)
+    seed: int = bounded(0, **SEED_BOUNDS)
+    cpus: int = bounded(1, ge=1)
+    policy: str = "orca"  # orca | straight | oracle | a checkpoint path (crowdbench/policies.py)
+    out: str | None = ""
+    resume: bool = False
+    orca: OrcaConfig = field(default_factory=OrcaConfig)
+    oracle: OracleConfig = field(default_factory=OracleConfig)
+    submission: SubmissionConfig = field(default_factory=SubmissionConfig)
+
+
+SELECTED = {"env": (ENV_SCHEMAS, "replay"), "algo": (ALGO_SCHEMAS, "td3"), "encoder": (ENCODER_SCHEMAS, "gatedgcn")}
+
+
+def register() -> None:
+    """Store the schemas in Hydra's ConfigStore: ``schema`` (the root) and ``schema/<group>/<name>``."""
+    from hydra.core.config_store import ConfigStore
+
+    cs = ConfigStore.instance()
+    cs.store(group="schema", name="root", node=RootConfig)
+    for group, (schemas, _) in SELECTED.items():
+        for name, node in schemas.items():
+            cs.store(group=f"schema/{group}", name=name, node=node)
+    for group, node in (("eval", EvalConfig), ("train", TrainConfig), ("viz", VizConfig), ("orca", OrcaConfig),
+                        ("oracle", OracleConfig), ("submission", SubmissionConfig)):
+        cs.store(group=f"schema/{group}", name="default", node=node)
+
+
+register()

@@ -1,0 +1,219 @@
+"""Config schemas (crowdbench/config_schema.py) and their validation (crowdbench/config_check.py): every
+shipped config validates, bad values give one-line errors naming the key before anything runs."""
+
+from __future__ import annotations
+
+import itertools
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+from hydra import compose as hydra_compose
+from hydra import initialize_config_dir
+from omegaconf import OmegaConf
+
+from crowdbench import cli
+from crowdbench.cli import CONFIG_DIR, compose, main
+from crowdbench.config_check import ConfigError, short, unknown_keys, validate, validate_checkpoint
+from crowdbench.config_schema import ALGO_SCHEMAS, ENCODER_SCHEMAS, ENV_SCHEMAS, RootConfig
+
+ROOT = Path(__file__).resolve().parents[1]
+OPTIONS = {g: sorted(p.stem for p in (CONFIG_DIR / g).glob("*.yaml"))
+           for g in ("experiment", "method", "env", "algo", "encoder", "train")}
+
+
+def composed_combinations():
+    """Every experiment x method x env (each also without experiment / method), and every algo x
+    encoder x train x env without a method (a method overrides algo and encoder)."""
+    for exp, method, env in itertools.product([None, *OPTIONS["experiment"]], [None, *OPTIONS["method"]],
+                                              OPTIONS["env"]):
+        yield [f"experiment={exp}"] * bool(exp) + [f"method={method}"] * bool(method) + [f"env={env}"]
+    for algo, enc, train, env in itertools.product(OPTIONS["algo"], OPTIONS["encoder"], OPTIONS["train"],
+                                                   OPTIONS["env"]):
+        yield [f"algo={algo}", f"encoder={enc}", f"train={train}", f"env={env}"]
+
+
+def test_every_shipped_config_combination_validates_and_every_key_has_a_schema_field():
+    seen = 0
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base=None):
+        for overrides in composed_combinations():
+            cfg = hydra_compose(config_name="config", overrides=overrides)
+            seen += 1
+            if "experiment=reactive" in overrides and "env=replay" not in overrides:
+                with pytest.raises(ConfigError, match="^env.humans: must be one of orca, sfm"):
+                    validate(cfg)  # reactive replay is the replay env's (env.humans=reactive_replay)
+                continue
+            validate(cfg)
+            assert unknown_keys(cfg) == [], overrides
+    assert seen == 6 * 6 * 3 + 3 * 3 * 2 * 3
+
+
+@pytest.mark.parametrize("group, schemas", [("env", ENV_SCHEMAS), ("algo", ALGO_SCHEMAS), ("encoder", ENCODER_SCHEMAS)])
+def test_each_option_has_its_schema_with_the_yamls_keys_and_defaults(group, schemas):
+    assert sorted(schemas) == OPTIONS[group]
+    for name, cls in schemas.items():
+        shipped = yaml.safe_load((CONFIG_DIR / group / f"{name}.yaml").read_text())
+        shipped = shipped.get(group, shipped)  # env/crowdnav.yaml is a _global_ package
+        assert OmegaConf.to_container(OmegaConf.structured(cls)) == shipped, (group, name)
+
+
+def test_schemas_are_in_hydras_config_store():
+    from hydra.core.config_store import ConfigStore
+
+    repo = ConfigStore.instance().repo["schema"]
+    assert {"root.yaml", "env", "algo", "encoder", "train"} <= set(repo)
+    assert set(repo["algo"]) == {"td3.yaml", "ddpg.yaml", "sac.yaml"}
+    node = ConfigStore.instance().load("schema/algo/sac.yaml").node
+    assert OmegaConf.get_type(node).__name__ == "SACConfig" and node.alpha_init == 0.005
+    root = OmegaConf.to_container(OmegaConf.structured(RootConfig))
+    assert root["seed"] == 0 and root["orca"]["pref_rule"] == "reach"
+
+
+@pytest.fixture
+def no_work(monkeypatch, tmp_path):
+    """Run in an empty directory where training or an evaluation starting fails the test."""
+    import crowdbench.algos.train
+
+    def started(*args, **kwargs):
+        raise AssertionError("work started before the config was refused")
+
+    monkeypatch.setattr(crowdbench.algos.train, "train", started)
+    for name in ("run_eval", "run_selfplay_eval", "run_crowdnav_eval"):
+        monkeypatch.setattr(cli, name, started)
+    work = tmp_path / "work"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    return work
+
+
+def refused(args, capsys) -> str:
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("crowdbench: error: ") and err.count("\n") == 1, err
+    return err
+
+
+# the reliability findings (18, 20): each command, its key and the message
+FINDINGS = [
+    (["eval", "seed=abc"], "seed: must be an integer in [0, 2**63) (got 'abc')"),
+    (["eval", "orca.safety_margin=abc"], "orca.safety_margin: must be a number >= 0 (got 'abc')"),
+    (["run", "encoder.dim=0"], "encoder.dim: must be >= 1 (got 0)"),
+    (["run", "train.frames_per_batch=0"], "train.frames_per_batch: must be >= 1 (got 0)"),
+    (["run", "env.batch=0"], "env.batch: must be >= 1 (got 0)"),
+    (["run", "algo.lr_actor=abc"], "algo.lr_actor: must be a number > 0 (got 'abc')"),
+    (["eval", "eval.scenes=[students001]"], "eval.scenes: students001 has no protocol episode list"),
+    (["run", "algo.gamma=2"], "algo.gamma: must be in (0, 1] (got 2)"),
+    (["eval", "eval.scenes=[]"], "eval.scenes: must not be empty (got [])"),
+    (["eval", "env.frame=polar"], "env.frame: must be one of rotate, translate, world (got 'polar')"),
+    (["run", "train.total_frames=-5"], "train.total_frames: must be >= 1 (got -5)"),
+    (["run", "seed=abc"], "seed: must be an integer in [0, 2**63) (got 'abc')"),
+    (["run", "algo=sac", "algo.alpha_init=0"], "algo.alpha_init: must be > 0 (got 0)"),
+    (["run", "train.human_dropout=1.5"], "train.human_dropout: must be in [0, 1] (got 1.5)"),
+    (["run", "algo.tau=nan"], "algo.tau: must be a finite number (got nan)"),
+    (["run", "encoder=mlp", "encoder.hidden=[64,0]"], "encoder.hidden: each item must be >= 1 (got [64, 0])"),
+    (["eval", "env=crowdnav", "env.n_humans=many"], "env.n_humans: must be an integer >= 1 (got 'many')"),
+    (["eval", "env=selfplay", "env.eval_n_agents=[4,0]"], "env.eval_n_agents: each item must be >= 1"),
+    (["eval", "oracle.speeds=[1.0,1.5]"], "oracle.speeds: each item must be in (0, 1] (got [1.0, 1.5])"),
+    (["run", "seed=" + "9" * 200], "seed: must be in [0, 2**63) (got 99999"),
+]
+
+
+@pytest.mark.parametrize("args, message", FINDINGS)
+def test_bad_values_are_refused_in_one_line_before_anything_is_written(args, message, no_work, capsys):
+    err = refused(args, capsys)
+    assert message in err and len(err) < 300, err
+    assert list(no_work.iterdir()) == []  # no outputs/ directory, nothing else
+
+
+def test_plot_smooth_must_be_positive(tmp_path, capsys):
+    err = refused(["plot", str(tmp_path), "--smooth", "-5"], capsys)
+    assert "--smooth: must be an integer >= 1 (got -5)" in err
+
+
+def test_a_sweep_validates_each_run(tmp_path):
+    env = {**os.environ, "OMP_NUM_THREADS": "1",
+           "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}  # this tree's crowdbench
+    p = subprocess.run([sys.executable, "-m", "crowdbench.cli", "run", "-m", "algo.gamma=2,3", "out=sweep"],
+                       cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120, check=False)
+    assert p.returncode == 1, p.stderr[-2000:]
+    errors = [r["error"] for r in yaml.safe_load((tmp_path / "sweep" / "sweep.json").read_text())["failed"]]
+    assert errors == ["algo.gamma: must be in (0, 1] (got 2)", "algo.gamma: must be in (0, 1] (got 3)"]
+    assert not any((tmp_path / "sweep" / str(job) / "logs").exists() for job in (0, 1))  # nothing trained
+
+
+def test_a_bad_value_in_a_yaml_is_caught(tmp_path, monkeypatch, capsys):
+    conf = tmp_path / "conf"
+    shutil.copytree(CONFIG_DIR, conf)
+    td3 = (conf / "algo" / "td3.yaml").read_text()
+    (conf / "algo" / "td3.yaml").write_text(td3.replace("batch_size: 100", "batch_size: many"))
+    (conf / "experiment" / "broken.yaml").write_text("# @package _global_\nenv:\n  v_max: 0.0\n")
+    monkeypatch.setattr(cli, "CONFIG_DIR", conf)
+    with pytest.raises(ConfigError, match=r"^algo\.batch_size: must be an integer >= 1 \(got 'many'\)$"):
+        validate(compose([]))
+    with pytest.raises(ConfigError, match=r"^env\.v_max: must be > 0 \(got 0\.0\)$"):
+        validate(compose(["algo=ddpg", "experiment=broken"]))
+    monkeypatch.chdir(tmp_path)
+    assert "algo.batch_size" in refused(["run", "out=run"], capsys) and not (tmp_path / "run").exists()
+
+
+def test_keys_added_with_plus_are_accepted_as_hydra_accepts_them():
+    cfg = compose(["+env.note=calibration", "+tags=[a,b]"])
+    validate(cfg)
+    assert unknown_keys(cfg) == ["env.note", "tags"]
+
+
+def test_a_long_value_is_truncated_in_the_message():
+    nested = [[list(range(1000))] * 1000] * 1000  # 10**9 leaves if it were expanded
+    assert len(short(nested)) <= 60 and len(short("x" * 10**6)) <= 60
+
+
+# --------------------------------------------------------------------------------------------- checkpoints
+@pytest.fixture
+def checkpoints(tmp_path):
+    """A valid tiny checkpoint and the findings' bad ones (in ``ck/``, outside the working directory)."""
+    from crowdbench.algos.builders import build_actor
+    from crowdbench.algos.checkpoint import save_checkpoint
+
+    cfg = OmegaConf.to_container(compose(["encoder=mlp", "encoder.dim=8", "encoder.hidden=[8]"]), resolve=True)
+    actor = build_actor("td3", cfg["encoder"], 1.0, squash="radial").state_dict()
+    base = {"config": cfg, "actor": actor, "frames": 0, "updates": 0}
+    d = tmp_path / "ck"
+    d.mkdir()
+
+    def write(name, edit=None, weights=None):
+        state = {**base, "config": OmegaConf.to_container(OmegaConf.create(cfg)), "actor": weights or actor}
+        if edit:
+            edit(state["config"])
+        save_checkpoint(d / f"{name}.pt", state)
+        return str(d / f"{name}.pt")
+
+    return {"good": write("good"),
+            "no_frame": write("no_frame", lambda c: c["env"].pop("frame")),
+            "polar": write("polar", lambda c: c["env"].update(frame="polar")),
+            "fast": write("fast", lambda c: c["env"].update(v_max="fast")),
+            "gamma": write("gamma", lambda c: c["algo"].update(gamma=2.0)),
+            "nan": write("nan", weights={k: torch.full_like(v, float("nan")) for k, v in actor.items()})}
+
+
+@pytest.mark.parametrize("name, message", [
+    ("no_frame", "env.frame: missing from its config"),
+    ("polar", "env.frame: must be one of rotate, translate, world (got 'polar')"),
+    ("fast", "env.v_max: must be a number > 0 (got 'fast')"),
+    ("gamma", "algo.gamma: must be in (0, 1] (got 2.0)"),
+    ("nan", "must be finite (got 1968 of 1968 values NaN or inf)"),  # (1 + 40) x 6 inputs x 8
+])
+def test_bad_checkpoints_are_refused_in_one_line(name, message, checkpoints, no_work, capsys):
+    err = refused(["eval", f"policy={checkpoints[name]}"], capsys)
+    assert f"checkpoint {checkpoints[name]}: " in err and message in err, err
+    if name == "nan":
+        assert "actor.module.encoder.net.0.weight" in err  # the tensor
+    assert list(no_work.iterdir()) == []
+
+
+def test_a_valid_checkpoint_validates(checkpoints):
+    assert validate_checkpoint(checkpoints["good"])["config"]["encoder"]["dim"] == 8
