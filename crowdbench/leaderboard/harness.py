@@ -165,31 +165,43 @@ def unavoidable(res: dict) -> dict:
 
 
 # ---------------------------------------------------------------------------------- jobs
-def _job(sub: Submission, track: str, scenes: list[str], episodes: int | None, fp: str, limits: Limits = DEFAULT_LIMITS):
-    """Evaluate one validated submission on one track: ``(results, seconds)`` or the :class:`SubmissionError`.
+def _job(sub: Submission, tracks: list[tuple[str, str]], scenes: list[str], episodes: int | None,
+         limits: Limits = DEFAULT_LIMITS) -> list:
+    """Evaluate one validated submission on each of ``tracks`` (``(track, fingerprint)`` pairs): per
+    track ``(results, seconds)`` or the :class:`SubmissionError`.
 
-    Single-threaded (``torch.set_num_threads(1)``; the worker too) whatever the caller's setting, so
-    the floating-point reductions, and hence the numbers, do not depend on the machine or ``--jobs``.
-    Any failure of the evaluation is that submission's rejection, never the whole run's.
+    A learned entry's tracks share one worker process (starting it, ~2.5 s, costs about as much as
+    its whole v1 evaluation); a worker that failed is replaced for the next track. Single-threaded
+    (``torch.set_num_threads(1)``; the worker too) whatever the caller's setting, so the
+    floating-point reductions, and hence the numbers, do not depend on the machine or ``--jobs``.
+    Any failure of an evaluation is that submission's rejection on that track, never the whole run's.
     """
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
-    policy = None
+    out, worker = [], None
     try:
-        t = time.time()
-        t_ = TRACKS[track]
-        policy = build_policy(sub, t_, limits)
-        res = evaluate_submission(sub, policy, scenes, episodes, fp, t_)
-        return res, time.time() - t
-    except SubmissionError as e:
-        return e
-    except WorkerError as e:
-        return SubmissionError(sub.yaml_path, e.field, str(e))
-    except Exception as e:  # noqa: BLE001 - e.g. a model that fails on a real observation mid-episode
-        return _failed(sub, e)
+        for track, fp in tracks:
+            t, t_ = time.time(), TRACKS[track]
+            try:
+                if sub.kind == "learned":
+                    worker = worker or build_policy(sub, t_, limits)
+                    worker.steps = 0
+                policy = worker or build_policy(sub, t_, limits)
+                out.append((evaluate_submission(sub, policy, scenes, episodes, fp, t_), time.time() - t))
+                continue
+            except SubmissionError as e:
+                out.append(e)
+            except WorkerError as e:
+                out.append(SubmissionError(sub.yaml_path, e.field, str(e)))
+            except Exception as e:  # noqa: BLE001 - e.g. a model that fails on a real observation mid-episode
+                out.append(_failed(sub, e))
+            if worker is not None:
+                worker.close()
+                worker = None
+        return out
     finally:
-        if isinstance(policy, WorkerPolicy):
-            policy.close()
+        if worker is not None:
+            worker.close()
         torch.set_num_threads(threads)
 
 
@@ -205,25 +217,37 @@ def _absolute(sub: Submission) -> Submission:
                                extra_files=[p.resolve() for p in sub.extra_files])
 
 
+def _groups(todo: list) -> list[tuple[Submission, list[tuple[str, str]]]]:
+    """``todo``'s consecutive entries of one submission as one job: ``(submission, [(track, fp), ...])``."""
+    groups: list = []
+    for d, sub, track, fp, _ in todo:
+        if groups and groups[-1][0] == d:
+            groups[-1][2].append((track, fp))
+        else:
+            groups.append((d, sub, [(track, fp)]))
+    return [(sub, tracks) for _, sub, tracks in groups]
+
+
 def _local(todo: list, scenes, episodes, jobs: int, limits: Limits):
-    if jobs <= 1 or len(todo) <= 1:
-        for _, sub, track, fp, _ in todo:
-            yield _job(sub, track, scenes, episodes, fp, limits)
+    groups = _groups(todo)
+    if jobs <= 1 or len(groups) <= 1:
+        for sub, tracks in groups:
+            yield from _job(sub, tracks, scenes, episodes, limits)
         return
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
     with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as pool:
-        futures = [pool.submit(_job, sub, track, scenes, episodes, fp, limits) for _, sub, track, fp, _ in todo]
-        for (_, sub, _, _, _), fut in zip(todo, futures, strict=True):
+        futures = [pool.submit(_job, sub, tracks, scenes, episodes, limits) for sub, tracks in groups]
+        for (sub, tracks), fut in zip(groups, futures, strict=True):
             try:
-                yield fut.result()
-            except Exception as e:  # noqa: BLE001 - a crashed worker process
-                yield _failed(sub, e)
+                yield from fut.result()
+            except Exception as e:  # noqa: BLE001 - a crashed job process
+                yield from [_failed(sub, e)] * len(tracks)
 
 
 def _ray(todo: list, scenes, episodes, jobs: int, address: str | None, limits: Limits):
-    """One Ray task per submission: a local cluster of ``jobs`` CPUs, or the cluster at ``address``
+    """One Ray task per submission (all its tracks): a local cluster of ``jobs`` CPUs, or the cluster at ``address``
     (``auto``, ``ray://host:10001``; crowdbench installed and the leaderboard directory at the same
     absolute path on its nodes)."""
     try:
@@ -243,12 +267,13 @@ def _ray(todo: list, scenes, episodes, jobs: int, address: str | None, limits: L
         # the workers evaluate with this process's numerical path (crowdbench/numerics.py), on any node
         pinned = {k: os.environ[k] for k in PINNED if k in os.environ}
         task = ray.remote(num_cpus=1, max_retries=0, runtime_env={"env_vars": pinned})(_job)
-        refs = [task.remote(_absolute(sub), track, scenes, episodes, fp, limits) for _, sub, track, fp, _ in todo]
-        for (_, sub, _, _, _), ref in zip(todo, refs, strict=True):
+        groups = _groups(todo)
+        refs = [task.remote(_absolute(sub), tracks, scenes, episodes, limits) for sub, tracks in groups]
+        for (sub, tracks), ref in zip(groups, refs, strict=True):
             try:
-                yield ray.get(ref)
+                yield from ray.get(ref)
             except Exception as e:  # noqa: BLE001 - the task raised or its worker died
-                yield _failed(sub, e)
+                yield from [_failed(sub, e)] * len(tracks)
     finally:
         if started:
             ray.shutdown()
