@@ -221,6 +221,7 @@ class EvalConfig:
                               metadata={"min_len": 1})
     episodes: int | None = bounded(None, ge=1)
     save_episodes: bool = False
+    overwrite: bool = False  # replace the results.json already in out=
 
 
 @dataclass
@@ -229,6 +230,7 @@ class TrainConfig:
     frames_per_batch: int = bounded(256, ge=1)
     utd: float = bounded(0.5, ge=0)  # gradient updates per collected frame
     checkpoint_every: int = bounded(5000, ge=1)  # frames
+    save_buffer: bool = True  # the replay buffer with each checkpoint
     stats_window: int = bounded(200, ge=1)  # episodes
     max_minutes: float | None = bounded(None, gt=0)
     probe_every: int = bounded(28672, ge=1)  # frames
