@@ -656,7 +656,7 @@ def test_two_submissions_shipping_the_same_module_name_get_their_own(tmp_path, m
     """Finding 3: two submissions that both ship my_encoder.py are registered with their own class and
     fingerprinted with their own file (the sys.modules cache gave the second one the first one's)."""
     from crowdbench.leaderboard import fingerprint, read_submission
-    from crowdbench.leaderboard.schema import register_encoder
+    from crowdbench.leaderboard.encoders import register_encoder
 
     monkeypatch.syspath_prepend(str(REPO))
     root = tmp_path / "lb"

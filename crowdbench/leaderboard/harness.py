@@ -30,13 +30,13 @@ from crowdbench import policies
 from crowdbench.envs.protocol import EVAL_SCENES
 from crowdbench.fixed_lists import check_crowdnav
 from crowdbench.leaderboard.cache import HARNESS_VERSION
+from crowdbench.leaderboard.encoders import register_encoder
 from crowdbench.leaderboard.sandbox import DEFAULT_LIMITS, Limits
 from crowdbench.leaderboard.schema import (
     Submission,
     SubmissionError,
     baseline_args,
     policy_error,
-    register_encoder,
 )
 from crowdbench.leaderboard.tracks import (
     TRACKS,
