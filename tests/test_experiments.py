@@ -23,6 +23,7 @@ TRAINING = ("algo", "encoder", "env", "train")  # what decides the trained weigh
 def training_config(cfg: dict) -> dict:
     out = {g: dict(cfg[g]) for g in TRAINING}
     out["train"].pop("max_minutes", None)  # a wall-time cap, not a training setting
+    out["train"].pop("save_buffer", None)  # what a checkpoint holds, not how the run trains
     return {**out, "seed": cfg["seed"]}
 
 

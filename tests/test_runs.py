@@ -163,9 +163,9 @@ def test_an_actor_only_checkpoint_cannot_be_resumed(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("args, message", [
-    (["train.total_frames=-5"], "train.total_frames must be a positive integer, got -5"),
-    (["seed=abc"], "seed must be an integer"),
-    (["algo.exploration=pink"], "unknown algo.exploration 'pink'"),
+    (["train.total_frames=-5"], "train.total_frames: must be >= 1 (got -5)"),
+    (["seed=abc"], "seed: must be an integer"),
+    (["algo.exploration=pink"], "algo.exploration: must be one of gaussian, ou (got 'pink')"),
     (["resume=true"], "checkpoint not found"),
 ])
 def test_a_run_that_fails_validation_leaves_no_directory(args, message, tmp_path, capsys):
