@@ -98,17 +98,19 @@ class Site:
     def __init__(self, root: Path, by_track: dict[str, list[dict]], scenes: list[str], episodes: int | None):
         self.root, self.scenes, self.episodes = Path(root), list(scenes), episodes
         self.by_track = {t: by_track[t] for t in TRACK_ORDER if by_track.get(t)}
-        self.entries: dict[str, list[dict]] = {}  # entry label -> its results on every track
+        # an entry: (label, the track it was trained on; None for baselines and the oracle), as the transfer
+        # table keys them (one label may be trained on two tracks) -> its results on every track
+        self.entries: dict[tuple[str, str | None], list[dict]] = {}
         for results in self.by_track.values():
             for r in results:
-                self.entries.setdefault(r["meta"]["entry"], []).append(r)
+                self.entries.setdefault(key(r), []).append(r)
         self.slugs = {lab: min(r["meta"]["submission"] for r in rs) for lab, rs in self.entries.items()}
 
-    def href(self, entry: str, depth: int = 0, anchor: str = "") -> str:
+    def href(self, entry: tuple, depth: int = 0, anchor: str = "") -> str:
         return f"{'../' * depth if depth else 'entries/'}{quote(self.slugs[entry])}.html" + \
             (f"#{quote(anchor)}" if anchor else "")
 
-    def names(self, entry: str) -> list[str]:
+    def names(self, entry: tuple) -> list[str]:
         return sorted({r["meta"]["submission"] for r in self.entries[entry]})
 
     # ------------------------------------------------------------------ index
@@ -127,7 +129,7 @@ class Site:
             rows = []
             for g in groups:
                 lab = label(g, escape=False)
-                cells = [f'<td data-sort="{e(lab)}"><a href="{self.href(g[0]["meta"]["entry"])}">{e(lab)}</a></td>',
+                cells = [f'<td data-sort="{e(lab)}"><a href="{self.href(key(g[0]))}">{e(lab)}</a></td>',
                          td(None, trained_on(g[0]) or "—"), td(len(g), str(len(g)))]
                 rows.append(cells + [td(*table_cell(g, c, metric, digits)) for c in cols])
             head = [("method", False), ("trained on", False), ("seeds", True), *((c, True) for c in cols)]
@@ -146,7 +148,8 @@ class Site:
         tracks = list(self.by_track)
         rows = []
         for (entry, origin), got in sorted(per.items(), key=lambda kv: (TRACK_ORDER.index(kv[0][1]), kv[0][0].lower())):
-            cells = [f'<td data-sort="{e(entry)}"><a href="{self.href(entry)}">{e(entry)}</a></td>', td(None, origin),
+            cells = [f'<td data-sort="{e(entry)}"><a href="{self.href((entry, origin))}">{e(entry)}</a></td>',
+                     td(None, origin),
                      td(max(map(len, got.values())), str(max(map(len, got.values()))))]
             for t in tracks:
                 g = sorted(got.get(t, []), key=lambda r: r["meta"]["submission"])
@@ -161,12 +164,12 @@ class Site:
 
     def submissions_section(self) -> list[str]:
         rows = []
-        for entry in sorted(self.entries, key=str.lower):
+        for entry in sorted(self.entries, key=order):
             for name in self.names(entry):
                 d = next(r["submission"] for r in self.entries[entry] if r["meta"]["submission"] == name)
                 authors = d["authors"] if isinstance(d["authors"], str) else ", ".join(map(str, d["authors"]))
                 rows.append([f'<td data-sort="{e(name)}"><a href="{self.href(entry, anchor=name)}">{e(name)}</a></td>',
-                             *(td(None, x) for x in (entry, d["kind"], d.get("encoder", d.get("policy", "—")),
+                             *(td(None, x) for x in (entry[0], d["kind"], d.get("encoder", d.get("policy", "—")),
                                                      d.get("algo", "—"), d.get("seed", "—"), authors)),
                              f'<td data-sort="{e(d.get("link", ""))}">{external(d.get("link"))}</td>'])
         head = [(h, h == "seed") for h in ("submission", "entry", "kind", "encoder / policy", "algo", "seed",
@@ -243,20 +246,29 @@ class Site:
                 "<p>Rerun recordings (open with <code>rerun FILE.rrd</code>):</p>", "<ul>", *links, "</ul>",
                 "</section>"]
 
-    def entry_page(self, entry: str, media: dict[str, dict | None]) -> str:
+    def entry_page(self, entry: tuple, media: dict[str, dict | None]) -> str:
         names = self.names(entry)
         rs = self.entries[entry]
         kinds = sorted({r["meta"]["kind"] for r in rs})
         origins = sorted({trained_on(r) for r in rs if trained_on(r)})
         seeds = ", ".join(f'<a href="#{e(quote(n))}">{e(n)}</a>' for n in names)
-        body = ["<header>", '<p><a href="../index.html">← leaderboard</a></p>', f"<h1>{e(entry)}</h1>",
+        body = ["<header>", '<p><a href="../index.html">← leaderboard</a></p>', f"<h1>{e(entry[0])}</h1>",
                 f"<p>{e(', '.join(kinds))}" + (f"; trained on {e(', '.join(origins))}" if origins else "") +
                 f"; {len(names)} submission(s): {seeds}</p>", "</header>", "<main>"]
         body += self.media_block(names[0], media.get(names[0]))
         for name in names:
             data = next(r["submission"] for r in rs if r["meta"]["submission"] == name)
             body += self.submission_block(name, data)
-        return page(f"{entry}: crowdbench leaderboard", [*body, "</main>"], depth=1)
+        return page(f"{entry[0]}: crowdbench leaderboard", [*body, "</main>"], depth=1)
+
+
+def key(r: dict) -> tuple[str, str | None]:
+    """The entry of a result: its label and the track it was trained on (None: a baseline, the oracle)."""
+    return r["meta"]["entry"], trained_on(r)
+
+
+def order(entry: tuple[str, str | None]) -> tuple:
+    return entry[0].lower(), TRACK_ORDER.index(entry[1]) if entry[1] else -1
 
 
 def training_command(data: dict) -> str | None:
@@ -298,7 +310,7 @@ def write_site(out: Path, root: Path, by_track: dict[str, list[dict]], scenes: l
         shutil.copyfile(root / "leaderboard.png", out / "leaderboard.png")
     v1 = {r["meta"]["submission"]: r["harness"].get("fingerprint") for r in site.by_track.get("v1", [])}
     media = {}
-    for entry in sorted(site.entries, key=str.lower):
+    for entry in sorted(site.entries, key=order):
         first = site.names(entry)[0]
         media[first] = entry_media(out, root, first, v1.get(first), figures, log, limits, scene)
     if (out / "media").is_dir():  # the media of submissions no longer shown
