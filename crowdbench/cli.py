@@ -201,9 +201,17 @@ def cmd_leaderboard(args: list[str]) -> int:
     ap.add_argument("--docs", type=Path, action="append", default=None, metavar="FILE",
                     help="also regenerate the generated blocks of this file (repeatable; default: "
                     "docs/results.md and docs/reproduction.md when --root is not given and they have them)")
+    ap.add_argument("--site", type=Path, default=None, metavar="DIR", help="also write the leaderboard as a "
+                    "static web site into DIR (from the results on disk; docs/submitting.md section 4)")
+    ap.add_argument("--site-figures", type=int, default=2, metavar="N", help="--site: N episodes per entry for "
+                    "its trajectory figure and rerun recordings (cached; 0: none; default 2)")
     a = ap.parse_args(args)
     if a.episodes is not None and a.episodes < 1:
         ap.error("--episodes must be >= 1")
+    if a.site is not None and a.check:
+        ap.error("--site writes files; --check writes nothing: run them separately")
+    if not 0 <= a.site_figures <= 50:
+        ap.error("--site-figures must be in [0, 50]")
     scenes = None
     if a.scenes:
         try:
@@ -237,7 +245,8 @@ def cmd_leaderboard(args: list[str]) -> int:
         except ValueError as e:
             ap.error(str(e))
     return run(a.root or DEFAULT_ROOT, a.only, a.check, a.force, a.episodes, scenes, jobs=a.jobs,
-               launcher=a.launcher, address=a.address, readme=readme, docs=docs, tracks=tracks, limits=limits)
+               launcher=a.launcher, address=a.address, readme=readme, docs=docs, tracks=tracks, limits=limits,
+               site=a.site, site_figures=a.site_figures)
 
 
 def training_overrides(cfg: dict) -> list[str]:
@@ -341,7 +350,7 @@ def main(argv: list[str] | None = None) -> int:
               "  crowdbench eval|run ... viz.record=true [viz.episodes=[0,5]] [viz.scenes=[students003]]\n"
               "  crowdbench run|eval env=selfplay [env.n_agents=N] [env.scenario=circle|square|mixed] ...  (docs/selfplay.md)\n"
               "  crowdbench leaderboard [--check] [--force] [--only NAME] [--episodes N] [--scenes a,b] [--jobs N]\n"
-              "      [--launcher local|ray] [--address ADDR] [--root DIR] [--readme FILE] [--docs FILE]\n"
+              "      [--launcher local|ray] [--address ADDR] [--root DIR] [--readme FILE] [--docs FILE] [--site DIR]\n"
               "  crowdbench submit <run dir> --name NAME --entry LABEL [--authors A,B] [--link URL] [--root DIR]\n"
               "  crowdbench viz <episodes.jsonl|results dir> [--episode N] [--scene S] [--grid K] [--out FILE.png]\n"
               "  crowdbench plot <run dir> [<run dir> ...] [--out FILE.png] [--smooth N]")

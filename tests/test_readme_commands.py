@@ -74,6 +74,9 @@ INVOCATIONS: dict[str, list[list[str]]] = {
           "bubblewrap" if bubblewrap() else "none"]],
     "crowdbench leaderboard --tracks v1,v2-orca":
         [["leaderboard", "--tracks", "v1,v2-orca", "--root", "{lb}", "--episodes", "2", "--scenes", "hotel"]],
+    "crowdbench leaderboard --site DIR [--site-figures N]":  # figures and the browser: tests/test_site.py
+        [["leaderboard", "--root", "{lb}", "--episodes", "2", "--scenes", "hotel", "--tracks", "v1", "--site",
+          "{tmp}/site", "--site-figures", "0"]],
     "crowdbench run env=selfplay algo=td3 encoder=gatedgcn":
         [["run", "env=selfplay", "algo=td3", "encoder=gatedgcn", "env.n_agents=4", *SELFPLAY, "out={selfplay}"]],
     "crowdbench run env=selfplay env.n_agents=16 env.scenario=square env.background=students001":
@@ -176,3 +179,4 @@ def test_every_readme_command_runs(places, monkeypatch, capsys):
     subs = sorted(p.name for p in (places["lb"] / "submissions").iterdir())
     assert "tiny_run" in subs and "gatedgcn_sac_s2" in subs and len(subs) == 16  # 15 leaderboard rows + 1
     assert (places["lb"] / "README.md").is_file() and (places["tmp"] / "viz_eval" / "recordings").is_dir()
+    assert (places["tmp"] / "site" / "index.html").is_file()

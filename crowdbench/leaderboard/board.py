@@ -68,14 +68,17 @@ def _scene_problem(scenes: list[str]) -> str | None:
 def run(root: Path = DEFAULT_ROOT, only: list[str] | None = None, check: bool = False, force: bool = False,
         episodes: int | None = None, scenes: list[str] | None = None, log=None, jobs: int = 1,
         launcher: str = "local", address: str | None = None, readme: Path | None = None,
-        docs: list[Path] | None = None, tracks: list[str] | None = None, limits: Limits = DEFAULT_LIMITS) -> int:
+        docs: list[Path] | None = None, tracks: list[str] | None = None, limits: Limits = DEFAULT_LIMITS,
+        site: Path | None = None, site_figures: int = 2) -> int:
     """Validate, evaluate and render; returns the exit code (0 ok, 1 a submission failed or --check differs).
 
     ``tracks``: the tracks evaluated (default all; the others keep their cached results, and ``--check``
     compares only their tables). ``readme``: a file whose block between the ``generated:results``
     markers is regenerated too; ``docs``: files whose generated blocks (``render.BLOCKS``) are
     regenerated too (None: no other file is touched). Both are protocol v1's. ``limits``: the bounds
-    and the sandbox of the learned submissions' worker processes (crowdbench/leaderboard/sandbox.py)."""
+    and the sandbox of the learned submissions' worker processes (crowdbench/leaderboard/sandbox.py).
+    ``site``: also write the web site into this directory from the same results (not with ``check``;
+    crowdbench/leaderboard/site.py), with ``site_figures`` episodes per entry for its figures."""
     root = Path(root)
     log = log or (lambda msg: print(msg, flush=True))
     scenes = list(scenes or EVAL_SCENES)
@@ -177,8 +180,8 @@ def run(root: Path = DEFAULT_ROOT, only: list[str] | None = None, check: bool = 
     v1_missing = [m for t, m in missing if t == "v1"]
     table = render.render_readme(v1, v1_rejected, scenes, episodes, v1_missing)
     shown = {t: results[t] for t in TRACK_ORDER if t in tracks or results[t]}
-    board = render_tracks(shown, scenes, episodes, [m for _, m in missing],
-                          sorted(f"{m} (track {t})" if t else m for t, m in rejected))
+    all_rejected = sorted(f"{m} (track {t})" if t else m for t, m in rejected)
+    board = render_tracks(shown, scenes, episodes, [m for _, m in missing], all_rejected)
     log(f"leaderboard: {sum(map(len, results.values()))} results evaluated/cached on {len(tracks)} track(s), "
         f"{len(rejected)} rejected, {time.time() - t_all:.1f} s")
     if check:
@@ -197,6 +200,13 @@ def run(root: Path = DEFAULT_ROOT, only: list[str] | None = None, check: bool = 
                          f"the generated blocks of {path}")
     (root / TRACKS_FILE).write_text(board)
     wrote.append(str(root / TRACKS_FILE))
+    if site is not None:  # from the results just written: the tables' numbers
+        from crowdbench.leaderboard.site import write_site
+
+        t_site = time.time()
+        index = write_site(site, root, results, scenes, episodes, site_figures, [m for _, m in missing],
+                           all_rejected, log, limits)
+        wrote.append(f"{index} ({time.time() - t_site:.1f} s)")
     log(f"wrote {', '.join(wrote)}")
     return 1 if failed else 0
 

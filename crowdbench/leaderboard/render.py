@@ -49,9 +49,7 @@ def average_cell(r: dict, metric: str, digits: int) -> tuple[float | None, str]:
     else:
         half = math.sqrt(sum(((v["ci95"][1] - v["ci95"][0]) / 2) ** 2 for v in vals)) / len(vals)
         ci = [mean - half, mean + half]
-    if ci[0] is None:
-        return mean, fmt(mean, digits)
-    return mean, f"{mean:.{digits}f} [{ci[0]:.{digits}f}, {ci[1]:.{digits}f}]"
+    return mean, fmt(mean, digits) if ci[0] is None else f"{mean:.{digits}f} [{ci[0]:.{digits}f}, {ci[1]:.{digits}f}]"
 
 
 def seed_cell(values: list[float | None], digits: int) -> tuple[float | None, str]:
@@ -90,26 +88,27 @@ METRICS = [
 ]
 
 
+def table_columns(scenes: list[str]) -> list[str]:
+    """A metric table's value columns: the paper scenes, their average (all four present), the others."""
+    paper = [s for s in PAPER_SCENES if s in scenes]
+    return [*paper, *(["AVG (paper scenes)"] * (len(paper) == len(PAPER_SCENES))), *(s for s in scenes if s not in paper)]
+
+
+def table_cell(g: list[dict], col: str, metric: str, digits: int, intervals: bool = True) -> tuple[float | None, str]:
+    """Entry ``g``'s cell in column ``col`` (a scene or ``AVG...``): one run [95% interval], seeds mean ± sd."""
+    vals = [average_cell(r, metric, digits) if col.startswith("AVG") else scene_cell(r, col, metric, digits) for r in g]
+    if len(g) > 1:
+        return seed_cell([v[0] for v in vals], digits)
+    return vals[0][0], vals[0][1] if intervals else fmt(vals[0][0], digits)
+
+
 def metric_table(groups: list[list[dict]], scenes: list[str], metric: str, digits: int,
                  intervals: bool = True) -> list[str]:
     """One row per entry; a single run shows its 95% interval (``intervals``), seeds mean ± sd."""
-    paper = [s for s in PAPER_SCENES if s in scenes]
-    extra = [s for s in scenes if s not in PAPER_SCENES]
-    with_avg = len(paper) == len(PAPER_SCENES)
-    head = ["method", "seeds", *paper, *(["AVG (paper scenes)"] if with_avg else []), *extra]
+    head = ["method", "seeds", *table_columns(scenes)]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for g in groups:
-        cells = [label(g), str(len(g))]
-        for col in head[2:]:
-            if len(g) == 1:
-                m, c = average_cell(g[0], metric, digits) if col.startswith("AVG") else \
-                    scene_cell(g[0], col, metric, digits)
-                c = c if intervals else fmt(m, digits)
-            else:
-                vals = [(average_cell(r, metric, digits) if col.startswith("AVG") else
-                         scene_cell(r, col, metric, digits))[0] for r in g]
-                _, c = seed_cell(vals, digits)
-            cells.append(c)
+        cells = [label(g), str(len(g)), *(table_cell(g, col, metric, digits, intervals)[1] for col in head[2:])]
         lines.append("| " + " | ".join(cells) + " |")
     return lines
 
