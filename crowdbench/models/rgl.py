@@ -60,7 +60,7 @@ class RGLEncoder(nn.Module):
 
     def forward(self, robot, humans=None, humans_mask=None):
         robot, humans, mask, lead = flatten_obs(*unpack_obs(robot, humans, humans_mask))
-        valid = torch.cat((torch.ones_like(mask[:, :1]), mask), -1)  # [B, N]: robot, then the human slots
+        valid = torch.cat((mask.new_ones(mask.shape[0], 1), mask), -1)  # [B, N]: robot, then the human slots
         hum = torch.where(mask.unsqueeze(-1), humans, 0.0)
         h = torch.cat((self.w_r(robot).unsqueeze(1), self.w_h(hum)), 1)  # X [B, N, D]
         a = self.adjacency(h, valid)

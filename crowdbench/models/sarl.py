@@ -17,7 +17,8 @@ and critic heads consume (the heads play the part of the value output). Inputs a
 benchmark's observation: ``s`` = the robot's ``[px, py, vx, vy, gx, gy]`` and ``w_i`` = the human's
 ``[px, py, vx, vy]`` in the configured frame, plus the robot-human distance ``d_i`` (CrowdNav's
 joint state also carries it; radii and preferred speed are constants here and are left out); no
-occupancy map (the SARL variant without "om"). Sums, means and the softmax run over observed
+occupancy map (the SARL variant without "om"); the score layer has no bias (a softmax ignores it,
+so it would never receive a gradient). Sums, means and the softmax run over observed
 humans only: unobserved or padded slots get a weight of exactly 0 and never enter ``e_m`` (CrowdNav
 has no padding; its masked softmax tests ``score != 0``). Without observed humans ``c = 0``.
 Widths are CPU-sized (``crowdbench/conf/encoder/sarl.yaml``; CrowdNav's are in the comments there).
@@ -38,15 +39,17 @@ from crowdbench.models.base import Gates, is_plain
 from crowdbench.models.graph import flatten_obs, unpack_obs
 
 
-def relu_mlp(n_in: int, n_out: int, hidden, last_relu: bool) -> MLP:
+def relu_mlp(n_in: int, n_out: int, hidden, last_relu: bool, last_bias: bool = True) -> MLP:
     """``Linear`` layers ``n_in -> *hidden -> n_out`` with ReLU between them (and after the last)."""
     return MLP(in_features=n_in, out_features=n_out, num_cells=list(hidden), activation_class=nn.ReLU,
-               activate_last_layer=last_relu)
+               activate_last_layer=last_relu, bias_last_layer=last_bias)
 
 
 def masked_softmax(scores: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """Softmax of ``scores`` over the last axis restricted to ``mask``: exactly 0 where ``mask`` is
     False, all zero for a row without a True entry; finite gradients everywhere (vmap-safe)."""
+    if scores.shape[-1] == 0:  # no human slots at all
+        return scores * mask
     top = torch.where(mask, scores, -torch.inf).amax(-1, keepdim=True)
     top = torch.where(torch.isfinite(top), top, 0.0).detach()  # a constant shift: the softmax is unchanged
     ex = torch.exp(torch.where(mask, scores - top, 0.0)) * mask
@@ -65,7 +68,7 @@ def human_gates(weights: torch.Tensor, mask: torch.Tensor, lead: tuple) -> Gates
     b, m = mask.shape
     values = torch.cat((weights.new_zeros(b, 1), weights), -1)
     nbr = torch.cat((torch.full((b, 1), m + 1), torch.arange(1, m + 1).expand(b, m)), -1).to(mask.device)
-    valid = torch.cat((torch.zeros_like(mask[:, :1]), mask), -1)
+    valid = torch.cat((mask.new_zeros(b, 1), mask), -1)
     return Gates(values=values.reshape(*lead, m + 1), nbr=nbr.reshape(*lead, m + 1),
                  mask=valid.reshape(*lead, m + 1), full=values.reshape(*lead, m + 1, 1))
 
@@ -76,7 +79,7 @@ class SARLEncoder(nn.Module):
         self.out_dim = self.dim = dim
         self.phi_e = relu_mlp(6 + 5, embed[-1], embed[:-1], last_relu=True)
         self.psi_h = relu_mlp(embed[-1], interact[-1], interact[:-1], last_relu=False)
-        self.psi_a = relu_mlp(2 * embed[-1], 1, attention, last_relu=False)
+        self.psi_a = relu_mlp(2 * embed[-1], 1, attention, last_relu=False, last_bias=False)  # a softmax ignores it
         self.f_v = relu_mlp(6 + interact[-1], dim, hidden, last_relu=True)
         self._last = None
 
