@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 import yaml
@@ -279,3 +280,36 @@ def test_each_trains_evaluates_and_submits(tmp_path):
     board = (root / "README.md").read_text()
     for entry in entries.values():
         assert f"| {entry} |" in board
+
+
+def test_sarl_attention_is_drawn_in_the_recording(tmp_path):
+    """The rerun recording of a SARL policy holds, per step, one attention line per observed human
+    (node = slot + 1) with the attention weight of the policy call that chose the step's action."""
+    from crowdbench.algos.builders import build_actor
+    from crowdbench.algos.checkpoint import LearnedPolicy
+    from crowdbench.cli import compose
+    from crowdbench.eval import evaluate
+    from crowdbench.viz.record import make_recorder_factory, read_recording
+
+    torch.manual_seed(0)
+    actor = build_actor("td3", {"name": "sarl", **SMALL["sarl"]}, 1.0)
+    policy = LearnedPolicy(actor, name="tiny-sarl")
+    seen = []
+    act = policy.act
+    policy.act = lambda td: (seen.append(td.clone()), act(td))[1]
+    cfg = compose(["viz.record=true", "viz.episodes=[0]", "eval.episodes=1", "eval.scenes=[students003]"])
+    evaluate(policy, ["students003"], 1, out_dir=tmp_path,
+             recorder_factory=make_recorder_factory(policy, cfg, tmp_path, ["students003"]))
+    att = [r for r in read_recording(tmp_path / "recordings" / "students003_ep000.rrd")["world/attention"]
+           if "gate" in r]
+    enc = actor.module.encoder
+    assert att and sum(len(r["gate"]) >= 2 for r in att) > 0
+    for r in att:
+        o = seen[r["step"]]["agents", "observation"]
+        with torch.no_grad():
+            enc(o)
+        g = enc.last_gates
+        mask = o["humans_mask"][0, 0]
+        assert r["node"] == (torch.nonzero(mask).flatten() + 1).tolist()
+        assert np.allclose(r["gate"], g.values[0, 0][g.mask[0, 0]].double().numpy(), atol=1e-6)
+        assert abs(sum(r["gate"]) - 1.0) < 1e-5
