@@ -13,7 +13,9 @@ Reports (medians over repetitions, milliseconds):
   critic fwd/bwd, Adam, Polyak), hand-written and with TorchRL's ``TD3Loss`` (vmapped and
   ``deactivate_vmap=True`` critics); targets: <= 30 ms for the fast gatedgcn preset;
 - actor decision latency at B = 1 on a crowded observation (target <= 1 ms);
-- the K-cap binding rate on STUDENTS001 / STUDENTS003.
+- the K-cap binding rate on STUDENTS001 / STUDENTS003;
+- ``crowd``: forward + backward of each registered encoder's preset (``--encoders`` to choose)
+  at B = 256 with M = 40 observed humans within 5 m (synthetic, uniform in the sensing disc).
 
 Timings on a shared machine are noisy: the script prints the load average and the CPU
 used by other processes while it ran.
@@ -135,6 +137,32 @@ def encoder_section(o, reps, quick):
             enc.forward_prepared(prep)[1].sum().backward()
 
         print(f"  {label:30s} {bench(raw, n):8.2f} | {bench(pre, n):8.2f}")
+
+
+def crowd_obs(b: int = 256, m: int = 40, radius: float = 5.0, seed: int = 0):
+    """``b`` robots at the origin (goal 4 m ahead), each with ``m`` observed humans uniform in the disc."""
+    g = torch.Generator().manual_seed(seed)
+    r = radius * torch.rand(b, 1, m, generator=g).sqrt()
+    ang = 2 * torch.pi * torch.rand(b, 1, m, generator=g)
+    vel = torch.randn(b, 1, m, 2, generator=g) * 0.5
+    humans = torch.cat((torch.stack((r * ang.cos(), r * ang.sin()), -1), vel), -1)
+    robot = torch.tensor([0.0, 0.0, 0.5, 0.0, 4.0, 0.0]).expand(b, 1, 6).clone()
+    return robot, humans, torch.ones(b, 1, m, dtype=torch.bool)
+
+
+def crowd_section(reps, names=None):
+    from crowdbench.models import ENCODERS
+
+    args = crowd_obs()
+    print("\n## encoder forward + backward, B = 256, M = 40 observed humans within 5 m, presets (ms)")
+    for name in names or list(ENCODERS):
+        enc = make_encoder(**preset(name))
+
+        def step(enc=enc):
+            enc(*args)[1].sum().backward()
+
+        n_par = sum(p.numel() for p in enc.parameters())
+        print(f"  {name:10s} D={enc.out_dim:<4d} {n_par:7d} params {bench(step, reps):8.2f}")
 
 
 def adam(params):
@@ -316,7 +344,8 @@ def main(argv=None):
     ap.add_argument("--reps", type=int, default=20)
     ap.add_argument("--quick", action="store_true", help="skip the slowest configurations")
     ap.add_argument("--no-tune-allocator", action="store_true")
-    ap.add_argument("--sections", default="graph,encoders,td3,latency,cap")
+    ap.add_argument("--sections", default="graph,encoders,td3,latency,cap,crowd")
+    ap.add_argument("--encoders", default=None, help="comma-separated encoders of the crowd section (default all)")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     tuned = False if args.no_tune_allocator else tune_allocator()
@@ -337,6 +366,8 @@ def main(argv=None):
         latency_section(args.reps)
     if "cap" in sections:
         cap_section()
+    if "crowd" in sections:
+        crowd_section(args.reps, args.encoders.split(",") if args.encoders else None)
     busy1, self1 = cpu_busy()
     hz = os.sysconf("SC_CLK_TCK")
     wall = time.perf_counter() - wall0

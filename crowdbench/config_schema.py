@@ -209,7 +209,41 @@ class MLPConfig:
     max_humans: int = bounded(40, ge=0)
 
 
-ENCODER_SCHEMAS: dict[str, type] = {"gatedgcn": GatedGCNConfig, "gcn": GCNConfig, "mlp": MLPConfig}
+@dataclass
+class SARLConfig:
+    """``encoder=sarl`` (crowdbench/models/sarl.py)."""
+
+    name: str = bounded("sarl", choices=("sarl",))
+    dim: int = bounded(32, ge=1)
+    embed: list[int] = field(default_factory=lambda: [64, 32], metadata={"ge": 1, "min_len": 1})
+    interact: list[int] = field(default_factory=lambda: [32, 32], metadata={"ge": 1, "min_len": 1})
+    attention: list[int] = field(default_factory=lambda: [32], metadata={"ge": 1})
+    hidden: list[int] = field(default_factory=lambda: [64], metadata={"ge": 1})
+
+
+@dataclass
+class LSTMRLConfig:
+    """``encoder=lstm_rl`` (crowdbench/models/lstm_rl.py)."""
+
+    name: str = bounded("lstm_rl", choices=("lstm_rl",))
+    dim: int = bounded(32, ge=1)
+    hidden_size: int = bounded(32, ge=1)  # LSTM state
+    hidden: list[int] = field(default_factory=lambda: [64], metadata={"ge": 1})
+
+
+@dataclass
+class RGLConfig:
+    """``encoder=rgl`` (crowdbench/models/rgl.py)."""
+
+    name: str = bounded("rgl", choices=("rgl",))
+    dim: int = bounded(32, ge=1)
+    embed: list[int] = field(default_factory=lambda: [64], metadata={"ge": 1})
+    layers: int = bounded(2, ge=1)
+    skip: bool = True
+
+
+ENCODER_SCHEMAS: dict[str, type] = {"gatedgcn": GatedGCNConfig, "gcn": GCNConfig, "mlp": MLPConfig,
+                                    "sarl": SARLConfig, "lstm_rl": LSTMRLConfig, "rgl": RGLConfig}
 
 
 # ------------------------------------------------------------------------------ the other groups, root

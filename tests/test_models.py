@@ -27,7 +27,9 @@ from crowdbench.models.heads import (
 )
 
 CONFIGS = Path(__file__).resolve().parents[1] / "crowdbench" / "conf" / "encoder"
-SMALL = {"gatedgcn": {"dim": 16}, "gcn": {"dim": 16}, "mlp": {"dim": 16, "hidden": [32]}}
+SMALL = {"gatedgcn": {"dim": 16}, "gcn": {"dim": 16}, "mlp": {"dim": 16, "hidden": [32]},
+         "sarl": {"dim": 16, "embed": [16, 16], "interact": [16], "attention": [16], "hidden": [16]},
+         "lstm_rl": {"dim": 16, "hidden_size": 16, "hidden": [16]}, "rgl": {"dim": 16, "embed": [16]}}
 
 
 # --------------------------------------------------------------------------- fixtures
@@ -374,7 +376,7 @@ def test_encoder_configs_build(real_obs, path):
 
 def test_expected_presets_exist():
     names = {p.stem for p in CONFIGS.glob("*.yaml")}
-    assert {"gatedgcn", "gcn", "mlp"} == names  # one preset per encoder: the paper's width is experiment=paper
+    assert set(ENCODERS) == names  # one preset per encoder: the paper's width is experiment=paper
     gated = yaml.safe_load((CONFIGS / "gatedgcn.yaml").read_text())
     assert gated["dim"] == 32 and gated["layers"] == 2
 

@@ -10,12 +10,18 @@ from torch import nn
 
 from crowdbench.models.gatedgcn import GatedGCNEncoder
 from crowdbench.models.gcn import GCNEncoder
+from crowdbench.models.lstm_rl import LSTMRLEncoder
 from crowdbench.models.mlp import MLPEncoder
+from crowdbench.models.rgl import RGLEncoder
+from crowdbench.models.sarl import SARLEncoder
 
 ENCODERS: dict[str, type[nn.Module]] = {
     "gatedgcn": GatedGCNEncoder,
     "gcn": GCNEncoder,
     "mlp": MLPEncoder,
+    "sarl": SARLEncoder,
+    "lstm_rl": LSTMRLEncoder,
+    "rgl": RGLEncoder,
 }
 
 
@@ -27,4 +33,5 @@ def make_encoder(name: str, **cfg) -> nn.Module:
     return ENCODERS[name](**cfg)
 
 
-__all__ = ["ENCODERS", "GCNEncoder", "GatedGCNEncoder", "MLPEncoder", "make_encoder"]
+__all__ = ["ENCODERS", "GCNEncoder", "GatedGCNEncoder", "LSTMRLEncoder", "MLPEncoder", "RGLEncoder", "SARLEncoder",
+           "make_encoder"]

@@ -185,7 +185,7 @@ class TwinCritic(nn.Module):
         super().__init__()
         second = copy.deepcopy(critic)
         for m in second.modules():  # independent initialisation
-            if isinstance(m, nn.Linear):
+            if isinstance(m, nn.Linear | nn.RNNBase):
                 m.reset_parameters()
         self.critics = nn.ModuleList([critic, second])
         self.vmap = vmap
