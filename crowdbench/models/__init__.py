@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from torch import nn
 
+from crowdbench.models.dsrnn import DSRNNEncoder
+from crowdbench.models.gat import GATEncoder
 from crowdbench.models.gatedgcn import GatedGCNEncoder
 from crowdbench.models.gcn import GCNEncoder
 from crowdbench.models.mlp import MLPEncoder
@@ -16,6 +18,8 @@ ENCODERS: dict[str, type[nn.Module]] = {
     "gatedgcn": GatedGCNEncoder,
     "gcn": GCNEncoder,
     "mlp": MLPEncoder,
+    "gat": GATEncoder,
+    "dsrnn": DSRNNEncoder,
 }
 
 
@@ -27,4 +31,4 @@ def make_encoder(name: str, **cfg) -> nn.Module:
     return ENCODERS[name](**cfg)
 
 
-__all__ = ["ENCODERS", "GCNEncoder", "GatedGCNEncoder", "MLPEncoder", "make_encoder"]
+__all__ = ["ENCODERS", "DSRNNEncoder", "GATEncoder", "GCNEncoder", "GatedGCNEncoder", "MLPEncoder", "make_encoder"]
