@@ -27,7 +27,8 @@ from crowdbench.models.heads import (
 )
 
 CONFIGS = Path(__file__).resolve().parents[1] / "crowdbench" / "conf" / "encoder"
-SMALL = {"gatedgcn": {"dim": 16}, "gcn": {"dim": 16}, "mlp": {"dim": 16, "hidden": [32]}}
+SMALL = {"gatedgcn": {"dim": 16}, "gcn": {"dim": 16}, "mlp": {"dim": 16, "hidden": [32]}, "gat": {"dim": 16},
+         "dsrnn": {"dim": 16, "embed": 16, "attn_dim": 8}}
 
 
 # --------------------------------------------------------------------------- fixtures
@@ -280,7 +281,7 @@ def test_unobserved_far_human_changes_nothing(real_obs, name):
     torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-5)
 
 
-@pytest.mark.parametrize("name", ["gatedgcn", "gcn"])
+@pytest.mark.parametrize("name", ["gatedgcn", "gcn", "gat"])
 @pytest.mark.parametrize("k", [2, 8])
 @pytest.mark.parametrize("layers", [1, 2])
 def test_receptive_field_equals_full_computation(real_obs, name, k, layers):
@@ -294,7 +295,7 @@ def test_receptive_field_equals_full_computation(real_obs, name, k, layers):
     assert hn_full.shape[-2] == real_obs["humans"].shape[-2] + 2 and hn_rf.shape[-2] == 1
     torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-5)
     torch.testing.assert_close(hn_full[..., 0, :], a)
-    if name == "gatedgcn":
+    if name in ("gatedgcn", "gat"):
         torch.testing.assert_close(full.last_gates.values, rf.last_gates.values, atol=1e-6, rtol=0)
 
 
@@ -374,7 +375,7 @@ def test_encoder_configs_build(real_obs, path):
 
 def test_expected_presets_exist():
     names = {p.stem for p in CONFIGS.glob("*.yaml")}
-    assert {"gatedgcn", "gcn", "mlp"} == names  # one preset per encoder: the paper's width is experiment=paper
+    assert {"gatedgcn", "gcn", "mlp", "gat", "dsrnn"} == names  # one preset per encoder: the paper's width is experiment=paper
     gated = yaml.safe_load((CONFIGS / "gatedgcn.yaml").read_text())
     assert gated["dim"] == 32 and gated["layers"] == 2
 
