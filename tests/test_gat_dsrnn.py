@@ -1,6 +1,7 @@
 """The encoders from the literature: GAT (crowdbench/models/gat.py) and DS-RNN-style spatial
 attention (crowdbench/models/dsrnn.py) against Python-loop references, their attention weights,
-and each one trained, evaluated, submitted and run by the leaderboard harness.
+and each one trained, evaluated, submitted and run by the leaderboard harness, and recorded by the
+visualisation with its attention.
 
 The generic encoder tests (permutation, far masked human, receptive field, gradients, vmapped
 critics, heads, prepared modules) run on every registered encoder in tests/test_models.py."""
@@ -9,6 +10,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
@@ -241,3 +243,34 @@ def test_trains_evaluates_submits_and_the_harness_runs_it(tmp_path, name, label,
     log: list[str] = []
     assert run(lb, episodes=2, scenes=["hotel"], tracks=["v1"], log=log.append) == 0, log
     assert f"| {label} |" in (lb / "README.md").read_text()
+
+
+@pytest.mark.parametrize("name", ["gat", "dsrnn"])
+def test_recorded_attention_equals_the_encoders_weights(tmp_path, name):
+    """The rerun recording (crowdbench/viz/record.py) draws these encoders' attention as it draws gates."""
+    from crowdbench.algos.builders import build_actor
+    from crowdbench.algos.checkpoint import LearnedPolicy
+    from crowdbench.cli import compose
+    from crowdbench.eval import evaluate
+    from crowdbench.viz.record import make_recorder_factory, read_recording
+
+    torch.manual_seed(0)
+    actor = build_actor("td3", {"name": name, "dim": 16}, 1.0)
+    policy, seen = LearnedPolicy(actor, name=f"tiny-{name}"), []
+    act = policy.act
+    policy.act = lambda td: (seen.append(td.clone()), act(td))[1]
+    cfg = compose(["viz.record=true", "viz.episodes=[0]", "eval.episodes=1", "eval.scenes=[students003]"])
+    factory = make_recorder_factory(policy, cfg, tmp_path, ["students003"])
+    evaluate(policy, ["students003"], 1, out_dir=tmp_path, recorder_factory=factory)
+    att = [r for r in read_recording(tmp_path / "recordings" / "students003_ep000.rrd")["world/attention"]
+           if "gate" in r]
+    enc = actor.module.encoder
+    assert len(att) > 10
+    for r in att:
+        with torch.no_grad():
+            enc(seen[r["step"]])
+        g = enc.last_gates
+        real = g.mask[0, 0]
+        assert r["node"] == g.nbr[0, 0][real].tolist()
+        assert np.allclose(r["gate"], g.values[0, 0][real].double().numpy(), atol=1e-6)
+        assert not r["gate"] or abs(sum(r["gate"]) - 1.0) < 1e-5
