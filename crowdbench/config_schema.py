@@ -242,8 +242,33 @@ class RGLConfig:
     skip: bool = True
 
 
+
+@dataclass
+class GATConfig(GCNConfig):
+    """``encoder=gat`` (crowdbench/models/gat.py)."""
+
+    name: str = bounded("gat", choices=("gat",))
+    heads: int = bounded(4, ge=1)  # hidden-layer heads (concatenated; encoder.dim must be a multiple)
+    out_heads: int = bounded(1, ge=1)  # last-layer heads (averaged)
+    negative_slope: float = bounded(0.2, ge=0)  # LeakyReLU of the attention scores
+    edge_features: bool = True  # relative positions in the scores
+
+
+@dataclass
+class DSRNNConfig:
+    """``encoder=dsrnn`` (crowdbench/models/dsrnn.py)."""
+
+    name: str = bounded("dsrnn", choices=("dsrnn",))
+    dim: int = bounded(32, ge=1)
+    embed: int = bounded(32, ge=1)  # edge / node embedding width
+    attn_dim: int = bounded(32, ge=1)  # query / key width
+    spatial_velocity: bool = True  # relative velocity in the spatial edges (DS-RNN: positions only)
+
+
+
 ENCODER_SCHEMAS: dict[str, type] = {"gatedgcn": GatedGCNConfig, "gcn": GCNConfig, "mlp": MLPConfig,
-                                    "sarl": SARLConfig, "lstm_rl": LSTMRLConfig, "rgl": RGLConfig}
+                                    "sarl": SARLConfig, "lstm_rl": LSTMRLConfig, "rgl": RGLConfig,
+                                    "gat": GATConfig, "dsrnn": DSRNNConfig}
 
 
 # ------------------------------------------------------------------------------ the other groups, root

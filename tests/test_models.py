@@ -29,7 +29,8 @@ from crowdbench.models.heads import (
 CONFIGS = Path(__file__).resolve().parents[1] / "crowdbench" / "conf" / "encoder"
 SMALL = {"gatedgcn": {"dim": 16}, "gcn": {"dim": 16}, "mlp": {"dim": 16, "hidden": [32]},
          "sarl": {"dim": 16, "embed": [16, 16], "interact": [16], "attention": [16], "hidden": [16]},
-         "lstm_rl": {"dim": 16, "hidden_size": 16, "hidden": [16]}, "rgl": {"dim": 16, "embed": [16]}}
+         "lstm_rl": {"dim": 16, "hidden_size": 16, "hidden": [16]}, "rgl": {"dim": 16, "embed": [16]},
+         "gat": {"dim": 16}, "dsrnn": {"dim": 16, "embed": 16, "attn_dim": 8}}
 
 
 # --------------------------------------------------------------------------- fixtures
@@ -282,7 +283,7 @@ def test_unobserved_far_human_changes_nothing(real_obs, name):
     torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-5)
 
 
-@pytest.mark.parametrize("name", ["gatedgcn", "gcn"])
+@pytest.mark.parametrize("name", ["gatedgcn", "gcn", "gat"])
 @pytest.mark.parametrize("k", [2, 8])
 @pytest.mark.parametrize("layers", [1, 2])
 def test_receptive_field_equals_full_computation(real_obs, name, k, layers):
@@ -296,7 +297,7 @@ def test_receptive_field_equals_full_computation(real_obs, name, k, layers):
     assert hn_full.shape[-2] == real_obs["humans"].shape[-2] + 2 and hn_rf.shape[-2] == 1
     torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-5)
     torch.testing.assert_close(hn_full[..., 0, :], a)
-    if name == "gatedgcn":
+    if name in ("gatedgcn", "gat"):
         torch.testing.assert_close(full.last_gates.values, rf.last_gates.values, atol=1e-6, rtol=0)
 
 

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from torch import nn
 
+from crowdbench.models.dsrnn import DSRNNEncoder
+from crowdbench.models.gat import GATEncoder
 from crowdbench.models.gatedgcn import GatedGCNEncoder
 from crowdbench.models.gcn import GCNEncoder
 from crowdbench.models.lstm_rl import LSTMRLEncoder
@@ -22,6 +24,8 @@ ENCODERS: dict[str, type[nn.Module]] = {
     "sarl": SARLEncoder,
     "lstm_rl": LSTMRLEncoder,
     "rgl": RGLEncoder,
+    "gat": GATEncoder,
+    "dsrnn": DSRNNEncoder,
 }
 
 
@@ -33,5 +37,5 @@ def make_encoder(name: str, **cfg) -> nn.Module:
     return ENCODERS[name](**cfg)
 
 
-__all__ = ["ENCODERS", "GCNEncoder", "GatedGCNEncoder", "LSTMRLEncoder", "MLPEncoder", "RGLEncoder", "SARLEncoder",
-           "make_encoder"]
+__all__ = ["ENCODERS", "DSRNNEncoder", "GATEncoder", "GCNEncoder", "GatedGCNEncoder", "LSTMRLEncoder", "MLPEncoder",
+           "RGLEncoder", "SARLEncoder", "make_encoder"]

@@ -169,7 +169,7 @@ class GraphEncoder(nn.Module):
         if self.training or torch.is_grad_enabled():
             return compute()
         mods = (self.robot_emb, self.human_emb, self.goal_emb, self.edge_emb, *self.layers[0].children())
-        params = [p for m in mods if m is not None for p in m._parameters.values()]
+        params = [p for m in mods if m is not None for p in m._parameters.values() if p is not None]  # bias=False: None
         if not all(is_plain(p) for p in params):
             return compute()
         key = tuple((id(p), p._version) for p in params)
