@@ -72,9 +72,9 @@ def path_irregularity(xy: torch.Tensor, active: torch.Tensor, start: torch.Tenso
     moving = active & (length > 0)
     dirs = torch.cat([(goal - start).double().unsqueeze(0), step])  # [T + 1, B, 2]; entry 0: initial heading
     T = step.shape[0]
-    idx = torch.where(moving, torch.arange(1, T + 1).unsqueeze(-1), 0)
+    idx = torch.where(moving, torch.arange(1, T + 1).view(T, *[1] * (moving.dim() - 1)), 0)
     last = torch.cat([torch.zeros_like(idx[:1]), idx]).cummax(0).values[:-1]  # [T, B]: last direction before step k
-    prev = dirs.gather(0, last.unsqueeze(-1).expand(-1, -1, 2))
+    prev = dirs.gather(0, last.unsqueeze(-1).expand(*last.shape, 2))
     cross = prev[..., 0] * step[..., 1] - prev[..., 1] * step[..., 0]
     turn = torch.atan2(cross, (prev * step).sum(-1)).abs() * moving
     path = (length * active).sum(0)

@@ -20,6 +20,7 @@ from crowdbench.social_metrics import (
     SCORE_TTC,
     TTC_HORIZON,
     min_ttc,
+    path_irregularity,
     social_nav_score,
     time_to_collision,
 )
@@ -139,6 +140,19 @@ def test_composite_score_hand_values():
     assert agg["path_irregularity"]["mean"] == 0.0
 
 
+def test_path_irregularity_is_batch_generic():
+    """``[T, E, A]`` traces (e.g. self-play's agents) give each column's own value: no mixing across the batch."""
+    g = torch.Generator().manual_seed(0)
+    xy = torch.randn(7, 2, 3, 2, generator=g, dtype=torch.float64).cumsum(0)
+    active = torch.rand(6, 2, 3, generator=g) < 0.8
+    goal = torch.randn(2, 3, 2, generator=g, dtype=torch.float64)
+    full = path_irregularity(xy, active, xy[0], goal)
+    for e in range(2):
+        for a in range(3):
+            one = path_irregularity(xy[:, e, a, None], active[:, e, a, None], xy[0, e, a, None], goal[e, a, None])
+            assert full[e, a] == one[0]
+
+
 # -------------------------------------------------------------- protocol v1's numbers unchanged
 BASE = "759d7f7abd8da2ae1822daa2fdec5973e85544e4"  # the last commit before these metrics
 NUMBERS = """
@@ -241,3 +255,17 @@ def test_leaderboard_tables_unchanged_by_results_without_the_metrics_and_extende
     assert "| SPL | STL | pers. space 0.5 m | min TTC s | irregularity rad/m | score |" in v1_table
     assert board.split("<!-- generated:track-v2-orca:start -->")[1] == tracks.split(
         "<!-- generated:track-v2-orca:start -->")[1]  # the other tracks: unchanged
+
+
+def test_crowdnav_and_protocol_v2_results_hold_the_metrics():
+    from crowdbench.baselines.straight import StraightToGoal
+    from crowdbench.envs.crowdnav import CrowdNavConfig
+    from crowdbench.eval import evaluate
+    from crowdbench.eval_crowdnav import evaluate_crowdnav
+
+    keys = {"spl", "stl", "personal_space_compliance_50cm", "min_ttc_s", "path_irregularity", "social_nav_score"}
+    for res in (evaluate_crowdnav(StraightToGoal(), CrowdNavConfig(), episodes=4),
+                evaluate(StraightToGoal(), ["hotel"], episodes=4, humans="sfm")):
+        (scene,) = res["scenes"].values()
+        assert keys <= set(scene) and all(scene[k]["n"] == 4 for k in keys)
+        assert 0 <= scene["social_nav_score"]["mean"] <= 1 and 0 <= scene["min_ttc_s"]["mean"] <= TTC_HORIZON
