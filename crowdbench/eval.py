@@ -29,6 +29,7 @@ from crowdbench.envs.protocol import (
 )
 from crowdbench.envs.torchrl_env import CrowdEnv
 from crowdbench.numerics import describe
+from crowdbench.social_metrics import episode_social_metrics
 
 Z95 = 1.959963984540054
 PERSONAL_SPACE = 0.45  # m, surface gap
@@ -117,9 +118,14 @@ def robot_traces(env: CrowdEnv, policy: Policy, recorder=None, privileged_view=N
     xy, clear, swept, reward, active = [], [], [], [], []
     reactive = hasattr(world.crowd, "offset")  # protocol v2: how far the robot pushed the humans off their tracks
     offset, deviation = [], []
+    hxy, hvel, hpresent = [], [], []  # the humans at every step's end (time-to-collision)
 
     def on_step(w, info):
         xy.append(w.pos[:, 0].clone())
+        h = w.humans()
+        hxy.append(h[0].clone())
+        hvel.append(h[1].clone())
+        hpresent.append(h[2].clone())
         clear.append(info.clearance[:, 0])
         swept.append(info.swept_clearance[:, 0])
         reward.append(info.reward[:, 0])
@@ -139,6 +145,7 @@ def robot_traces(env: CrowdEnv, policy: Policy, recorder=None, privileged_view=N
         "xy": torch.stack([first["xy"], *xy]), "clearance": torch.stack(clear), "swept": torch.stack(swept),
         "reward": torch.stack(reward), "active": torch.stack(active), "outcome": world.outcome[:, 0].clone(),
         "clearance0": first["clearance0"], "start": world.start[:, 0], "goal": world.goal[:, 0],
+        "humans_xy": torch.stack(hxy), "humans_vel": torch.stack(hvel), "humans_present": torch.stack(hpresent),
     }
     if reactive:
         traces.update(crowd_offset=torch.stack(offset), crowd_deviation=torch.stack(deviation))
@@ -165,7 +172,7 @@ def episode_metrics(tr: dict, cfg: SimConfig, gamma: float = 0.99) -> dict[str, 
     if "crowd_offset" in tr:  # protocol v2
         crowd = {"crowd_offset_max": (tr["crowd_offset"].double() * act).amax(0),
                  "crowd_deviation": (tr["crowd_deviation"].double() * act).sum(0)}
-    return crowd | {
+    metrics = crowd | {
         "outcome": tr["outcome"],
         "steps": steps,
         "nav_time": steps * cfg.dt,
@@ -181,10 +188,14 @@ def episode_metrics(tr: dict, cfg: SimConfig, gamma: float = 0.99) -> dict[str, 
         "return": (tr["reward"].double() * discount).sum(0),
         "success": success,
     }
+    # the field's social-navigation metrics (crowdbench/social_metrics.py): new keys only
+    return metrics | episode_social_metrics(tr, cfg, success, path, steps * cfg.dt)
 
 
 RENAMED = {"danger_steps": "dangers_per_episode", "personal_space": "personal_space_compliance",
-           "return": "discounted_return", "crowd_offset_max": "crowd_offset_max_m", "crowd_deviation": "crowd_deviation_m"}
+           "return": "discounted_return", "crowd_offset_max": "crowd_offset_max_m", "crowd_deviation": "crowd_deviation_m",
+           "personal_space_50cm": "personal_space_compliance_50cm", "min_ttc": "min_ttc_s"}
+SOCIAL = ("spl", "stl", "personal_space_50cm", "min_ttc", "path_irregularity", "social_nav_score")
 
 
 def aggregate(m: dict[str, torch.Tensor]) -> dict:
@@ -195,7 +206,7 @@ def aggregate(m: dict[str, torch.Tensor]) -> dict:
     out["path_length_ratio"] = mean_ci(m["path_ratio"][ok])
     keys = ("danger_steps", "danger_events", "min_clearance", "path_length", "mean_speed", "jerk",
             "personal_space", "return") + tuple(k for k in ("crowd_offset_max", "crowd_deviation") if k in m)
-    for key in keys:
+    for key in keys + tuple(k for k in SOCIAL if k in m):  # over every episode, failed ones included
         out[RENAMED.get(key, key)] = mean_ci(m[key].double())
     return out
 
@@ -283,28 +294,39 @@ def write_results(out_dir: Path, results: dict, rows: list[dict] | None = None) 
             f.writelines(json.dumps(r) + "\n" for r in rows)
 
 
+SOCIAL_COLS = [("spl", "SPL"), ("stl", "STL"), ("personal_space_compliance_50cm", "pers. space 0.5 m"),
+               ("min_ttc_s", "min TTC s"), ("path_irregularity", "irregularity rad/m"), ("social_nav_score", "score")]
+
+
 def format_table(results: dict) -> str:
-    """A plain-text table: one row per scene."""
+    """A plain-text table: one row per scene; then the social-navigation metrics, one row per scene."""
     cols = [("success_rate", "success"), ("collision_rate", "collision"), ("timeout_rate", "timeout"),
             ("nav_time_s", "nav time s"), ("dangers_per_episode", "dangers/ep"), ("min_clearance", "min clear m")]
     if any("crowd_offset_max_m" in r for r in results["scenes"].values()):  # protocol v2
         cols += [("crowd_offset_max_m", "crowd offset m"), ("crowd_deviation_m", "crowd deviation m")]
     w = 24  # fits "10.620 [10.156,11.085]"
-    head = f"{'scene':<13}" + "".join(f"{name:>{w}}" for _, name in cols)
     tag = "  [PRIVILEGED: knows the humans' future; an upper bound]" if results.get("privileged") else ""
     tag += f"  humans: reactive {results['humans']}" if "humans" in results else ""
-    lines = [f"policy: {results['policy']}  protocol: {results['protocol']}{tag}", head]
-    for scene, r in results["scenes"].items():
-        cells = []
-        for key, _ in cols:
-            v = r[key]
-            cells.append("n/a" if v["mean"] is None else f"{v['mean']:.3f} [{v['ci95'][0]:.3f},{v['ci95'][1]:.3f}]")
-        lines.append(f"{scene:<13}" + "".join(f"{c:>{w}}" for c in cells))
+    lines = [f"policy: {results['policy']}  protocol: {results['protocol']}{tag}", *_table_rows(results, cols, w)]
     if "average_paper_scenes" in results:
         a = results["average_paper_scenes"]
         lines.append(f"{'avg (paper)':<13}" + "".join(f"{'n/a' if a[k] is None else f'{a[k]:.3f}':>{w}}"
                                                       for k, _ in cols if k in a))
+    if any("spl" in r for r in results["scenes"].values()):  # results written before these metrics lack them
+        lines += ["", *_table_rows(results, SOCIAL_COLS, w)]
     return "\n".join(lines)
+
+
+def _table_rows(results: dict, cols: list[tuple[str, str]], w: int) -> list[str]:
+    lines = [f"{'scene':<13}" + "".join(f"{name:>{w}}" for _, name in cols)]
+    for scene, r in results["scenes"].items():
+        cells = []
+        for key, _ in cols:
+            v = r.get(key)
+            cells.append("n/a" if not v or v["mean"] is None else
+                         f"{v['mean']:.3f} [{v['ci95'][0]:.3f},{v['ci95'][1]:.3f}]")
+        lines.append(f"{scene:<13}" + "".join(f"{c:>{w}}" for c in cells))
+    return lines
 
 
 def markdown_table(runs: list[dict], metric: str = "success_rate", digits: int = 3) -> str:

@@ -12,6 +12,7 @@ import torch
 
 from crowdbench.envs.protocol import EVAL_SCENES, PAPER_SCENES, PROTOCOL_VERSION
 from crowdbench.eval import rate_ci
+from crowdbench.leaderboard.metrics import sections
 from crowdbench.leaderboard.schema import KINDS, link_problem
 from crowdbench.leaderboard.text import diff_rows, md  # noqa: F401 - diff_rows: render.diff_rows for --check
 
@@ -132,7 +133,7 @@ def render_readme(results: list[dict], rejected: list[str], scenes: list[str], e
     L += ["", ("The **oracle** is PRIVILEGED: it knows every replayed human's future and plans with the simulator's "
           "own collision test. It is an upper bound on what is achievable, not a navigation policy. "
           "How to submit: [docs/submitting.md](../docs/submitting.md)."), "", "![leaderboard](leaderboard.png)", ""]
-    for metric, title, digits in METRICS:
+    for metric, title, digits in METRICS + sections(results):  # the social metrics only if some result has them
         L += [f"## {title}", "", *metric_table(groups, scenes, metric, digits), ""]
     oracle = [r for g in groups for r in g if r["meta"]["kind"] == "oracle"]
     if oracle:
@@ -334,7 +335,7 @@ def render_docs_block(results: list[dict], scenes: list[str], episodes: int | No
           f"({', '.join(md(r['meta']['submission']) for r in baselines)}): {episodes or 250} episodes per scene, "
           "mean [95% interval] (Wilson for rates, normal approximation for means); the last column is the "
           "mean over the paper scenes.")]
-    for metric, title, digits in BASELINE_METRICS:
+    for metric, title, digits in BASELINE_METRICS + sections(baselines):
         L += ["", f"### {title}", "", *baseline_table(baselines, scenes, metric, digits)]
     return "\n\n" + "\n".join(L) + "\n\n"
 

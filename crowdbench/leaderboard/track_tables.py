@@ -5,6 +5,7 @@ the results; each table sits between ``generated:track-<name>`` (``generated:tra
 from __future__ import annotations
 
 from crowdbench.envs.protocol import PAPER_SCENES
+from crowdbench.leaderboard.metrics import columns
 from crowdbench.leaderboard.render import (
     average_cell,
     fmt,
@@ -35,7 +36,7 @@ def headline(r: dict, track: Track, metric: str, digits: int) -> tuple[float | N
         return scene_cell(r, track.setting, metric, digits)
     if all(s in r["scenes"] for s in PAPER_SCENES):
         return average_cell(r, metric, digits)
-    vals = [v[metric]["mean"] for v in r["scenes"].values()]  # an unofficial scene subset: their plain mean
+    vals = [(v.get(metric) or {}).get("mean") for v in r["scenes"].values()]  # an unofficial subset: plain mean
     if not vals or None in vals:
         return None, "—"
     return sum(vals) / len(vals), fmt(sum(vals) / len(vals), digits)
@@ -51,7 +52,7 @@ def track_table(track: Track, results: list[dict], scenes: list[str]) -> list[st
     """Baselines, the oracle (where it applies) and the entries trained on ``track``."""
     home = [r for r in results if trained_on(r) in (None, track.name)]
     groups = group_results(home)
-    cols = SUMMARY + (CROWD if track.protocol == "v2" else [])
+    cols = SUMMARY + (CROWD if track.protocol == "v2" else []) + columns(home)  # social: if some result has them
     where = "average over the four paper scenes" if track.replay else f"CrowdNav's test cases of {track.setting}"
     L = [f"## `{track.name}`: {track.title}", "",
          f"Each cell: {where}; a single run shows its 95% interval, several seeds mean ± sd."
