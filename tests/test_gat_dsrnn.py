@@ -15,23 +15,15 @@ import pytest
 import torch
 import torch.nn.functional as F
 import yaml
-from worlds import replay_sim, reset_v1
+from worlds import students_obs
 
-from crowdbench.data.scenes import load_scene
 from crowdbench.models import make_encoder
 
 
 @pytest.fixture(scope="module")
 def real_obs():
     """STUDENTS001 observations a few steps into episodes: [B=8, A=1, ...] (many humans, some isolated)."""
-    b = 8
-    sim = replay_sim(load_scene("students001"), b)
-    t0 = torch.linspace(0, sim.scenario.last_start, b).long()
-    ang = torch.linspace(0, 2 * math.pi, b + 1)[:-1]
-    reset_v1(sim, torch.ones(b, dtype=torch.bool), t0, ang)
-    for _ in range(4):
-        sim.step(torch.tensor([1.0, 0.0]).expand(b, 1, 2))
-    return sim.observe()
+    return students_obs(8, 4)
 
 
 def obs_args(o):

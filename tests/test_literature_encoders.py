@@ -9,10 +9,9 @@ import numpy as np
 import pytest
 import torch
 import yaml
-from worlds import replay_sim, reset_v1
+from worlds import students_obs
 
 from crowdbench.cli import main
-from crowdbench.data.scenes import load_scene
 from crowdbench.leaderboard import run as leaderboard_run
 from crowdbench.models import make_encoder
 from crowdbench.models.lstm_rl import sorted_sequence
@@ -27,14 +26,7 @@ SMALL = {"sarl": {"dim": 8, "embed": [16, 8], "interact": [8], "attention": [8],
 def obs():
     """Real STUDENTS001 observations a few steps into episodes, ``[B=8, 6]`` etc. (agent axis dropped)."""
     torch.manual_seed(0)
-    b = 8
-    sim = replay_sim(load_scene("students001"), b)
-    t0 = torch.linspace(0, sim.scenario.last_start, b).long()
-    ang = torch.linspace(0, 2 * math.pi, b + 1)[:-1]
-    reset_v1(sim, torch.ones(b, dtype=torch.bool), t0, ang)
-    for _ in range(4):
-        sim.step(torch.tensor([1.0, 0.0]).expand(b, 1, 2))
-    o = sim.observe()
+    o = students_obs(8, 4)
     robot, humans, mask = o["robot"][:, 0], o["humans"][:, 0], o["humans_mask"][:, 0].clone()
     mask[0] = False  # one robot without observed humans
     assert mask.sum(-1).max() >= 3

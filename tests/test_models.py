@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 import warnings
 from pathlib import Path
 
@@ -11,9 +10,8 @@ import torch
 import torch.nn.functional as F
 import yaml
 from tensordict import TensorDict
-from worlds import replay_sim, reset_v1
+from worlds import students_obs
 
-from crowdbench.data.scenes import load_scene
 from crowdbench.envs.policy import ACTION, OBS
 from crowdbench.models import ENCODERS, make_encoder
 from crowdbench.models.graph import build_graph, cap_binding
@@ -38,14 +36,7 @@ SMALL = {"gatedgcn": {"dim": 16}, "gcn": {"dim": 16}, "mlp": {"dim": 16, "hidden
 def real_obs():
     """Real STUDENTS001 observations a few steps into episodes: [B=12, A=1, ...]."""
     torch.manual_seed(0)
-    b = 12
-    sim = replay_sim(load_scene("students001"), b)
-    t0 = torch.linspace(0, sim.scenario.last_start, b).long()
-    ang = torch.linspace(0, 2 * math.pi, b + 1)[:-1]
-    reset_v1(sim, torch.ones(b, dtype=torch.bool), t0, ang)
-    for _ in range(6):
-        sim.step(torch.tensor([1.0, 0.0]).expand(b, 1, 2))
-    return sim.observe()
+    return students_obs(12, 6)
 
 
 def obs_args(o):

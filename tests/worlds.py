@@ -28,3 +28,19 @@ def reset_sp(world, mask: torch.Tensor, start: torch.Tensor, goal: torch.Tensor,
     """``World.reset`` from ``[B, A, 2]`` starts and goals (only the masked entries are used)."""
     t0 = torch.zeros(world.B, dtype=torch.long) if t0 is None else t0
     world.reset(mask, {"start": start[mask], "goal": goal[mask], "t0": t0[mask]})
+
+
+def students_obs(batch: int, steps: int) -> dict:
+    """Real STUDENTS001 observations ``steps`` steps into ``batch`` episodes spread over the scene
+    (the robot walking at 1 m/s along x): many humans, some robots isolated."""
+    import math
+
+    from crowdbench.data.scenes import load_scene
+
+    sim = replay_sim(load_scene("students001"), batch)
+    t0 = torch.linspace(0, sim.scenario.last_start, batch).long()
+    ang = torch.linspace(0, 2 * math.pi, batch + 1)[:-1]
+    reset_v1(sim, torch.ones(batch, dtype=torch.bool), t0, ang)
+    for _ in range(steps):
+        sim.step(torch.tensor([1.0, 0.0]).expand(batch, 1, 2))
+    return sim.observe()
