@@ -206,3 +206,21 @@ def test_a_missing_checkpoint_is_the_field_not_a_crash(tmp_path):
     with pytest.raises(WorkerError) as e:
         WorkerPolicy(root / "submissions" / "a", "a", LIMITS)
     assert e.value.field == "checkpoint"
+
+
+def test_a_checkpoint_with_an_unknown_frame_is_rejected_by_its_worker(tmp_path):
+    """Finding 4: `env.frame: polar` in a checkpoint aborted the whole leaderboard."""
+    from crowdbench.algos.checkpoint import load_checkpoint
+
+    root = tmp_path / "lb"
+    make_learned(root, "polar", ENCODER)
+    ckpt = root / "submissions" / "polar" / "checkpoint.pt"
+    state = load_checkpoint(ckpt)
+    state["config"]["env"]["frame"] = "polar"
+    save_checkpoint(ckpt, state)
+    add_straight(root)
+    log: list[str] = []
+    assert run(root, log=log.append, limits=LIMITS, **FAST) == 1
+    (line,) = [m for m in log if "error" in m]
+    assert "submissions/polar/submission.yaml: field 'checkpoint'" in line and "env.frame 'polar'" in line
+    assert (root / "results" / "straight" / "results.json").is_file() and (root / "README.md").is_file()
