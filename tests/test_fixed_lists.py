@@ -18,6 +18,13 @@ def _forge(tmp_path, monkeypatch):
     return forged
 
 
+def _straight_only(root):
+    d = root / "submissions" / "straight"
+    d.mkdir(parents=True)
+    (d / "submission.yaml").write_text("name: straight\nkind: baseline\npolicy: straight\nauthors: [a]\n")
+    return root
+
+
 def test_the_shipped_lists_are_the_published_ones():
     for version, scenes in fixed_lists.REPLAY.items():
         fixed_lists.check_replay(version, list(scenes))
@@ -37,10 +44,7 @@ def test_a_consistently_regenerated_list_is_refused_by_eval(tmp_path, monkeypatc
 def test_a_consistently_regenerated_list_is_refused_by_the_leaderboard(tmp_path, monkeypatch):
     (tmp_path / "lists").mkdir()
     _forge(tmp_path / "lists", monkeypatch)
-    root = tmp_path / "lb"
-    d = root / "submissions" / "straight"
-    d.mkdir(parents=True)
-    (d / "submission.yaml").write_text("name: straight\nkind: baseline\npolicy: straight\nauthors: [a]\n")
+    root = _straight_only(tmp_path / "lb")
     log: list[str] = []
     assert run(root, log=log.append, episodes=2, scenes=["hotel"], tracks=["v1"]) == 1
     assert any("is not protocol v1's published list" in m for m in log)
@@ -49,10 +53,7 @@ def test_a_consistently_regenerated_list_is_refused_by_the_leaderboard(tmp_path,
 
 def test_a_crowdnav_case_list_that_changed_rejects_the_track(tmp_path, monkeypatch):
     monkeypatch.setitem(fixed_lists.CROWDNAV, "circle_n5", "0" * 64)
-    root = tmp_path / "lb"
-    d = root / "submissions" / "straight"
-    d.mkdir(parents=True)
-    (d / "submission.yaml").write_text("name: straight\nkind: baseline\npolicy: straight\nauthors: [a]\n")
+    root = _straight_only(tmp_path / "lb")
     log: list[str] = []
     assert run(root, log=log.append, episodes=2, scenes=["hotel"], tracks=["crowdnav-circle5"]) == 1
     (line,) = [m for m in log if "error" in m]
