@@ -154,7 +154,8 @@ class WorkerPolicy(Policy):
             except (ProcessLookupError, PermissionError):
                 self.proc.kill()
         self.proc.wait()
-        for f in (self.proc.stdin, self.proc.stdout):
+        self._tail.thread.join(timeout=1)  # stderr's EOF (a process that escaped the group may hold it open)
+        for f in (self.proc.stdin, self.proc.stdout, *([] if self._tail.thread.is_alive() else [self.proc.stderr])):
             try:
                 f.close()
             except OSError:
