@@ -134,9 +134,7 @@ def run_one(cfg, overrides: list[str]) -> dict:
     from crowdbench.algos.checkpoint import policy_from_checkpoint
     from crowdbench.algos.train import train
 
-    check_config(cfg)  # also each run of a sweep (crowdbench/sweep.py task)
-    if not isinstance(cfg.cpus, int) or cfg.cpus < 1:
-        raise UsageError(f"cpus must be a positive integer, got {cfg.cpus!r}")
+    check_config(cfg)  # also each run of a sweep (crowdbench/sweep.py task); cpus >= 1 included
     torch.set_num_threads(cfg.cpus)
     eval_options(cfg)
     check_viz(cfg)
