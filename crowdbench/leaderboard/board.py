@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 from crowdbench.envs.protocol import EVAL_SCENES, PROTOCOL_VERSION
-from crowdbench.fixed_lists import check_replay
+from crowdbench.fixed_lists import ListError, check_replay
 from crowdbench.leaderboard import render
 from crowdbench.leaderboard.cache import fingerprint
 from crowdbench.leaderboard.harness import LauncherError, _evaluate_all
@@ -46,22 +46,22 @@ def _targets(readme, docs, log) -> list[tuple[Path, str]] | None:
 
 
 def _scene_problem(scenes: list[str]) -> str | None:
-    """``file: problem`` of the first evaluation scene (recording, v1 / v2 episode list) that cannot be
-    loaded, or None; checked once up front so that a broken install stops the run, not every submission."""
+    """``file: problem`` of the first evaluation scene whose recording or v1 / v2 episode list is missing,
+    corrupted or not the published one, or None; checked once up front so that a broken install stops
+    the run, not every submission."""
     from crowdbench.data import scenes as data
-    from crowdbench.envs.protocol import protocol_path, v2_path
 
     for s in scenes:
+        path = data.DATA_DIR / f"{s}.txt"
         try:
-            files = [(data.DATA_DIR / f"{s}.txt", lambda s=s: data.read_rows(s)), (protocol_path(s), None),
-                     (v2_path(s), None)]
-        except ValueError as e:  # an unknown scene
-            return f"scene {s!r}: {e}"
-        for path, load in files:
-            try:
-                load() if load else json.loads(path.read_text())
-            except (OSError, ValueError) as e:  # missing, sha256 mismatch, not JSON
-                return f"{path}: {' '.join(str(e).replace(str(path), 'the file').split())}"
+            data.read_rows(s)
+        except (OSError, ValueError) as e:  # missing, sha256 mismatch, unknown scene
+            return f"{path}: {' '.join(str(e).replace(str(path), 'the file').split())}"
+    try:
+        for version in ("v1", "v2"):
+            check_replay(version, scenes)  # missing, not JSON, or not the published list (crowdbench/fixed_lists.py)
+    except ListError as e:
+        return str(e)
     return None
 
 
@@ -85,8 +85,6 @@ def run(root: Path = DEFAULT_ROOT, only: list[str] | None = None, check: bool = 
     try:
         tracks = check_tracks(tracks)
         sandbox = sandbox_name(limits)
-        for version in sorted({TRACKS[t].protocol for t in tracks if TRACKS[t].replay}):
-            check_replay(version, scenes)  # the published lists (crowdbench/fixed_lists.py)
     except (ValueError, SandboxError) as e:
         log(f"crowdbench leaderboard: error: {e}")
         return 1
