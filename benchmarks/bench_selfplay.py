@@ -15,7 +15,7 @@ import time
 
 import torch
 
-from crowdbench.algos.builders import build_actor
+from crowdbench.algos.actors import build_actor
 from crowdbench.envs.factory import selfplay_env, selfplay_world
 from crowdbench.envs.selfplay import SelfPlayConfig
 

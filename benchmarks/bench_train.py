@@ -6,7 +6,7 @@
 
 - ``latency`` and ``td3``: the sections of ``bench_models.py`` (actor decision at B = 1 on a
   crowded students001 observation; one TD3 update at batch 100 for every encoder preset).
-- ``update``: one gradient update exactly as ``crowdbench run`` makes it (``Learner.update``
+- ``update``: one gradient update exactly as ``crowdbench run`` makes it (``OffPolicyAlgorithm.update``
   on a batch of 100 sampled from a PER buffer of real students001 transitions, then the
   priority write-back), per encoder preset, with the paper's critic and with the leaderboard
   recipe's lookahead critic; TD3 updates the actor every 2nd step, so the mean over 2 steps is
@@ -65,10 +65,9 @@ def update_section(encoders: list[str], reps: int, overrides: list[str] = ()) ->
     import bench_models as bm
     from torchrl.collectors import Collector
 
-    from crowdbench.algos.builders import exploration_policy
-    from crowdbench.algos.learner import Learner
     from crowdbench.algos.multiagent import agent_transitions
-    from crowdbench.algos.train import KEEP, make_buffer
+    from crowdbench.algos.offpolicy import KEEP
+    from crowdbench.algos.registry import component
     from crowdbench.cli import compose
     from crowdbench.envs.factory import make_env
 
@@ -81,9 +80,8 @@ def update_section(encoders: list[str], reps: int, overrides: list[str] = ()) ->
             cfg = compose([f"encoder={enc}", f"algo.critic_lookahead={lookahead}", *overrides])
             torch.manual_seed(0)
             env = make_env(cfg)
-            learner = Learner(cfg)
-            rb = make_buffer(cfg.algo, torch.Generator().manual_seed(0))
-            policy = exploration_policy("td3", learner.actor, env.n_agents, cfg.env.v_max, 0.3)
+            learner = component(cfg.algo.name)(cfg, env.n_agents)
+            rb, policy = learner.rb, learner.collection_policy()
             for batch in Collector(env, policy, frames_per_batch=1024, total_frames=4096,
                                    auto_register_policy_transforms=False):
                 rb.extend(agent_transitions(batch, KEEP))

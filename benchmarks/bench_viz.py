@@ -17,7 +17,7 @@ from pathlib import Path
 
 import torch
 
-from crowdbench.algos.builders import build_actor
+from crowdbench.algos.actors import build_actor
 from crowdbench.algos.checkpoint import LearnedPolicy
 from crowdbench.cli import compose
 from crowdbench.eval import evaluate

@@ -16,8 +16,8 @@ import sys
 import torch
 from omegaconf import OmegaConf
 
-from crowdbench.algos.builders import build_actor, build_critic, build_loss
 from crowdbench.algos.checkpoint import load_checkpoint
+from crowdbench.algos.registry import component
 from crowdbench.baselines.straight import StraightToGoal
 from crowdbench.envs.core import COLLISION
 from crowdbench.envs.factory import replay_env
@@ -30,10 +30,7 @@ def main(path: str, batch: int = 512, steps: int = 30) -> None:
     torch.set_num_threads(1)
     state = load_checkpoint(path)
     cfg = OmegaConf.create(state["config"])
-    enc = OmegaConf.to_container(cfg.encoder)
-    actor = build_actor(cfg.algo.name, enc, cfg.env.v_max, squash=cfg.algo.actor_squash)
-    critic = build_critic(enc, lookahead_dt=float(cfg.algo.critic_lookahead), v_max=cfg.env.v_max)
-    loss = build_loss(cfg.algo.name, actor, critic, 1, cfg.env.v_max, cfg.algo, prepared=True)
+    loss = component(cfg.algo.name)(cfg, 1).loss
     loss.load_state_dict(state["loss"])
     params = loss.qvalue_network_params[0] if hasattr(loss, "qvalue_network_params") else loss.value_network_params
     net = loss.qvalue_network if hasattr(loss, "qvalue_network") else loss.value_network
@@ -52,7 +49,7 @@ def main(path: str, batch: int = 512, steps: int = 30) -> None:
     def q(tdx, action):
         tdx = tdx.clone()
         tdx["agents", "action"] = action
-        prepare_batch(tdx, critic.module.encoder, include_next=False)
+        prepare_batch(tdx, getattr(net.module, "head", net.module).encoder, include_next=False)
         with params.to_module(net):
             return net(tdx)["agents", "state_action_value"][:, 0, 0]
 

@@ -26,7 +26,7 @@ from crowdbench.config_schema import SELECTED, RootConfig
 
 CHECKPOINT_SECTIONS = ("env", "algo", "encoder")
 # what rebuilding a checkpoint's actor reads (crowdbench/algos/checkpoint.py policy_from_checkpoint)
-CHECKPOINT_REQUIRED = ("env.frame", "env.v_max", "algo.name", "algo.actor_squash", "encoder.name")
+CHECKPOINT_REQUIRED = ("env.frame", "env.v_max", "algo.name", "encoder.name")
 MAX_ENTRIES = 10_000  # a checkpoint's config, counted as expanded (shared references count each time)
 _REPR = reprlib.Repr()
 _REPR.maxlevel, _REPR.maxdict, _REPR.maxlist, _REPR.maxtuple, _REPR.maxstring, _REPR.maxother = 3, 4, 6, 6, 50, 50
@@ -222,6 +222,14 @@ def _check(raw: dict, sections=None, prefix: str = "") -> None:
         values = OmegaConf.to_container(merged, resolve=True)
     except OmegaConfBaseException as e:
         raise _type_error(e, raw, selected, prefix) from None
+    if "algo" in selected and isinstance(raw.get("algo"), dict):
+        # an algorithm's config holds its own keys only: another algorithm's (an experiment written for
+        # TD3 run with SAC) would be silently unused
+        known = set(_hints(selected["algo"]))
+        extra = [k for k in raw["algo"] if k not in known]
+        if extra:
+            raise ConfigError(f"{prefix}algo.{extra[0]}: algo={short(raw['algo'].get('name'))} has no such key "
+                              f"(its keys: {', '.join(sorted(known))})")
     if sections is None:
         _check_bounds(RootConfig, values, raw, selected, "")
     else:

@@ -11,18 +11,14 @@ Hydra's ConfigStore (group ``schema``: ``schema/env/replay``, ``schema/algo/td3`
 Nothing that an evaluation imports (crowdbench/leaderboard/cache.py ``EVAL_MODULES``) imports this module.
 """
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from crowdbench.schema_fields import bounded
+
 FRAMES = ("rotate", "translate", "world")
 SEED_BOUNDS = {"ge": 0, "lt": 2**63}
-
-
-def bounded(default: Any = None, **bounds) -> Any:
-    """A dataclass field of an immutable type with ``bounds`` in its metadata: ``gt``, ``ge``, ``lt``,
-    ``le``, ``choices``, ``casefold`` (compare choices case-insensitively); a list field declares the
-    same keys (checked on each item) and ``min_len`` with ``field(default_factory=..., metadata=...)``."""
-    return field(default=default, metadata=bounds)
 
 
 # ------------------------------------------------------------------------------------------------ env
@@ -121,61 +117,30 @@ ENV_SCHEMAS: dict[str, type] = {"replay": ReplayEnvConfig, "selfplay": SelfPlayE
 
 
 # ---------------------------------------------------------------------------------------------- algo
-@dataclass
-class OffPolicyConfig:
-    """The keys TD3, DDPG and SAC share (crowdbench/algos/builders.py, learner.py, train.py). The shipped
-    YAMLs carry every key in every algorithm; one an algorithm does not use is still type-checked."""
+class _AlgoSchemas(Mapping):
+    """``algo`` schemas live with their algorithm (``crowdbench/algos/td3.py`` ``TD3Config``, ...): read
+    from the registry (crowdbench/algos/registry.py) when first needed, so that importing this module
+    imports no training code and an algorithm registered later is seen."""
 
-    name: str = bounded("td3", choices=("td3",))
-    gamma: float = bounded(0.99, gt=0, le=1)
-    lr_actor: float = bounded(1.0e-3, gt=0)
-    lr_critic: float = bounded(1.0e-3, gt=0)
-    lr_alpha: float = bounded(3.0e-4, gt=0)  # SAC's temperature (unused by TD3, DDPG)
-    tau: float = bounded(0.005, gt=0, le=1)
-    policy_delay: int = bounded(1, ge=1)
-    policy_noise: float = bounded(0.2, ge=0)
-    noise_clip: float = bounded(0.5, ge=0)
-    exploration_sigma: float = bounded(0.3, ge=0)
-    exploration: str = bounded("gaussian", choices=("gaussian", "ou"))
-    ou_theta: float = bounded(0.125, gt=0)
-    critic_lookahead: float = bounded(0.25, ge=0)  # s
-    n_steps: int = bounded(1, ge=1)
-    loss_function: str = bounded("l2", choices=("l2", "l1", "smooth_l1"))
-    alpha_init: float = bounded(1.0, gt=0)  # SAC's initial temperature (unused by TD3, DDPG)
-    batch_size: int = bounded(100, ge=1)
-    buffer_size: int = bounded(100000, ge=1)
-    warmup: int = bounded(2000, ge=0)  # frames of random actions before the first update
-    replay: str = bounded("uniform", choices=("uniform", "prioritized"))
-    per_alpha: float = bounded(0.6, ge=0, le=1)
-    per_beta: float = bounded(0.4, ge=0, le=1)
-    per_weights: bool = False
-    actor_squash: str = bounded("radial", choices=("radial", "box"))
+    def __getitem__(self, name):
+        from crowdbench.algos.registry import component, names
+
+        if name not in names():
+            raise KeyError(name)
+        return component(name).config
+
+    def __iter__(self):
+        from crowdbench.algos.registry import names
+
+        return iter(names())
+
+    def __len__(self):
+        from crowdbench.algos.registry import names
+
+        return len(names())
 
 
-@dataclass
-class TD3Config(OffPolicyConfig):
-    """``algo=td3``: twin critics, delayed actor updates, target policy smoothing."""
-
-    name: str = bounded("td3", choices=("td3",))
-    policy_delay: int = bounded(2, ge=1)
-
-
-@dataclass
-class DDPGConfig(OffPolicyConfig):
-    """``algo=ddpg``: one critic; ``policy_delay``, ``policy_noise``, ``noise_clip`` are TD3's and unused."""
-
-    name: str = bounded("ddpg", choices=("ddpg",))
-
-
-@dataclass
-class SACConfig(OffPolicyConfig):
-    """``algo=sac``: twin critics, TanhNormal policy, learned temperature (``alpha_init``, ``lr_alpha``)."""
-
-    name: str = bounded("sac", choices=("sac",))
-    alpha_init: float = bounded(0.005, gt=0)
-
-
-ALGO_SCHEMAS: dict[str, type] = {"td3": TD3Config, "ddpg": DDPGConfig, "sac": SACConfig}
+ALGO_SCHEMAS: Mapping[str, type] = _AlgoSchemas()
 
 
 # ------------------------------------------------------------------------------------------- encoder

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+from dataclasses import fields
 from pathlib import Path
 
 import pytest
 import torch
 
-from crowdbench.algos.builders import build_actor
+from crowdbench.algos.actors import build_actor
 from crowdbench.algos.checkpoint import (
     FORMAT,
     LEGACY_TAG,
@@ -26,10 +27,14 @@ def test_a_shipped_format_1_checkpoint_loads_with_the_upgraded_config():
     raw = torch.load(SHIPPED, map_location="cpu", weights_only=True)
     assert raw["format"] == LEGACY_TAG and "per_weights" not in raw["config"]["algo"]  # really format 1
     state = load_checkpoint(SHIPPED)
-    assert state["format"] == FORMAT == 3
+    assert state["format"] == FORMAT == 4
     assert state["config"]["env"]["humans"] == "replay"  # format 3: trained among the humans as recorded
     algo = state["config"]["algo"]
     assert algo["per_weights"] is False
+    # format 4: only TD3's own keys (its schema's fields)
+    from crowdbench.algos.td3 import TD3Config
+
+    assert set(algo) == {f.name for f in fields(TD3Config)} and {"lr_alpha", "alpha_init"} <= set(raw["config"]["algo"])
     assert algo["actor_squash"] == raw["config"]["algo"]["actor_squash"]  # stored values are kept
     assert algo["critic_lookahead"] == raw["config"]["algo"]["critic_lookahead"]
     for k, v in raw["actor"].items():

@@ -48,6 +48,11 @@ def test_every_shipped_config_combination_validates_and_every_key_has_a_schema_f
                 with pytest.raises(ConfigError, match="^env.humans: must be one of orca, sfm"):
                     validate(cfg)  # reactive replay is the replay env's (env.humans=reactive_replay)
                 continue
+            if "experiment=paper" in overrides and "method=gatedgcn_sac" in overrides:
+                # Table I's Gaussian exploration is TD3's; SAC explores by sampling its policy
+                with pytest.raises(ConfigError, match="^algo.exploration_sigma: algo='sac' has no such key"):
+                    validate(cfg)
+                continue
             validate(cfg)
             assert unknown_keys(cfg) == [], overrides
     n = {g: len(v) for g, v in OPTIONS.items()}
@@ -178,7 +183,7 @@ def test_a_long_value_is_truncated_in_the_message():
 @pytest.fixture
 def checkpoints(tmp_path):
     """A valid tiny checkpoint and the findings' bad ones (in ``ck/``, outside the working directory)."""
-    from crowdbench.algos.builders import build_actor
+    from crowdbench.algos.actors import build_actor
     from crowdbench.algos.checkpoint import save_checkpoint
 
     cfg = OmegaConf.to_container(compose(["encoder=mlp", "encoder.dim=8", "encoder.hidden=[8]"]), resolve=True)

@@ -240,7 +240,7 @@ def test_trains_evaluates_submits_and_the_harness_runs_it(tmp_path, name, label,
 @pytest.mark.parametrize("name", ["gat", "dsrnn"])
 def test_recorded_attention_equals_the_encoders_weights(tmp_path, name):
     """The rerun recording (crowdbench/viz/record.py) draws these encoders' attention as it draws gates."""
-    from crowdbench.algos.builders import build_actor
+    from crowdbench.algos.actors import build_actor
     from crowdbench.algos.checkpoint import LearnedPolicy
     from crowdbench.cli import compose
     from crowdbench.eval import evaluate

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from crowdbench.algos.builders import build_actor
+from crowdbench.algos.actors import build_actor
 from crowdbench.algos.checkpoint import save_checkpoint
 from crowdbench.leaderboard import run
 from crowdbench.leaderboard.sandbox import Limits, bubblewrap

@@ -10,7 +10,7 @@ import torch
 import yaml
 from torch import nn
 
-from crowdbench.algos.builders import build_actor
+from crowdbench.algos.actors import build_actor
 from crowdbench.algos.checkpoint import FORMAT, save_checkpoint
 from crowdbench.cli import main as cli_main
 from crowdbench.leaderboard import diff_rows, run
@@ -275,7 +275,7 @@ def test_fingerprint_covers_every_module_an_evaluation_loads(tmp_path):
               "if n.startswith('crowdbench') and getattr(m, '__file__', None))))")
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True)
     loaded = {Path(f).resolve() for f in json.loads(out.stdout.splitlines()[-1])}
-    assert {PACKAGE_DIR / "algos" / "builders.py", PACKAGE_DIR / "baselines" / "oracle.py"} <= loaded
+    assert {PACKAGE_DIR / "algos" / "actors.py", PACKAGE_DIR / "baselines" / "oracle.py"} <= loaded
     hashed = set(code_files())
     # everything loaded is hashed, except the harness package itself (versioned by HARNESS_VERSION) and the
     # published lists' hashes (fixed_lists.py: a check that can refuse an evaluation, never change a number)

@@ -4,14 +4,15 @@ import pytest
 import torch
 from torchrl.collectors import Collector
 
-from crowdbench.algos.builders import exploration_policy
-from crowdbench.algos.learner import Learner
 from crowdbench.algos.multiagent import agent_transitions
-from crowdbench.algos.train import KEEP, make_buffer, train
+from crowdbench.algos.offpolicy import KEEP
+from crowdbench.algos.registry import component
+from crowdbench.algos.train import train
 from crowdbench.cli import compose
 
-SMALL = ["encoder=mlp", "encoder.dim=16", "encoder.hidden=[32]", "env.batch=8", "algo.batch_size=16",
-         "algo.policy_noise=0.0"]  # no target smoothing noise: a loss is a function of its batch alone
+SMALL = ["encoder=mlp", "encoder.dim=16", "encoder.hidden=[32]", "env.batch=8", "algo.batch_size=16"]
+# no target smoothing noise (TD3): a loss is a function of its batch alone
+SMOOTHING = {"td3": ["algo.policy_noise=0.0"], "ddpg": []}
 
 
 def sampled_batch(cfg):
@@ -20,9 +21,8 @@ def sampled_batch(cfg):
 
     env = make_env(cfg)
     torch.manual_seed(1)
-    learner = Learner(cfg)
-    rb = make_buffer(cfg.algo, torch.Generator().manual_seed(0))
-    policy = exploration_policy(cfg.algo.name, learner.actor, env.n_agents, cfg.env.v_max, 0.3)
+    learner = component(cfg.algo.name)(cfg, env.n_agents)
+    rb, policy = learner.rb, learner.collection_policy()
     for batch in Collector(env, policy, frames_per_batch=128, total_frames=128, auto_register_policy_transforms=False):
         rb.extend(agent_transitions(batch, KEEP))
     return rb.sample()
@@ -31,15 +31,15 @@ def sampled_batch(cfg):
 def critic_loss(cfg, sample) -> float:
     """``loss_critic`` of one critic-only update (step 1 of policy delay 2) from the same initial weights."""
     torch.manual_seed(0)
-    return Learner(cfg).update(sample.clone(), 1)["loss_critic"]
+    return component(cfg.algo.name)(cfg, 1).update(sample.clone(), 1)["loss_critic"]
 
 
 @pytest.mark.parametrize("algo", ["td3", "ddpg"])
 def test_weighted_loss_is_the_weighted_mean(algo):
     """With weights one-hot at k the weighted critic loss is transition k's own loss; with uniform
     weights it is the plain mean; without per_weights the weights are ignored."""
-    cfg_w = compose([f"algo={algo}", *SMALL, "algo.replay=prioritized", "algo.per_weights=true"])
-    cfg_plain = compose([f"algo={algo}", *SMALL, "algo.replay=prioritized"])
+    cfg_w = compose([f"algo={algo}", *SMALL, *SMOOTHING[algo], "algo.replay=prioritized", "algo.per_weights=true"])
+    cfg_plain = compose([f"algo={algo}", *SMALL, *SMOOTHING[algo], "algo.replay=prioritized"])
     sample = sampled_batch(cfg_plain)
     n, k = sample.batch_size[0], 5
     assert sample["priority_weight"].shape == (n,)
@@ -64,4 +64,4 @@ def test_per_weights_train_and_need_per(tmp_path):
         stats = train(cfg, tmp_path / algo, progress=False)
         assert stats["updates"] > 0
     with pytest.raises(ValueError, match="per_weights=true needs algo.replay=prioritized"):
-        Learner(compose([*SMALL, "algo.per_weights=true", "algo.replay=uniform"]))
+        component("td3")(compose([*SMALL, "algo.per_weights=true", "algo.replay=uniform"]), 1)

@@ -277,7 +277,7 @@ def test_each_trains_evaluates_and_submits(tmp_path):
 def test_sarl_attention_is_drawn_in_the_recording(tmp_path):
     """The rerun recording of a SARL policy holds, per step, one attention line per observed human
     (node = slot + 1) with the attention weight of the policy call that chose the step's action."""
-    from crowdbench.algos.builders import build_actor
+    from crowdbench.algos.actors import build_actor
     from crowdbench.algos.checkpoint import LearnedPolicy
     from crowdbench.cli import compose
     from crowdbench.eval import evaluate

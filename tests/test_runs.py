@@ -14,8 +14,9 @@ import torch
 
 import crowdbench.algos.train as train_mod
 from crowdbench.algos.checkpoint import CheckpointError, load_checkpoint
+from crowdbench.algos.offpolicy import make_buffer
 from crowdbench.algos.resume import restore_buffer, save_buffer, truncate_log
-from crowdbench.algos.train import make_buffer, train
+from crowdbench.algos.train import train
 from crowdbench.cli import compose, main
 from crowdbench.outputs import LOCK_NAME
 

@@ -13,7 +13,7 @@ from torchrl.envs import RewardSum, TransformedEnv
 from torchrl.envs.utils import check_env_specs
 from worlds import reset_sp, selfplay_sim
 
-from crowdbench.algos.builders import build_actor
+from crowdbench.algos.actors import build_actor
 from crowdbench.algos.checkpoint import load_checkpoint, policy_from_checkpoint
 from crowdbench.algos.multiagent import agent_transitions, finished_episodes
 from crowdbench.baselines.straight import StraightToGoal

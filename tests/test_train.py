@@ -125,8 +125,8 @@ def test_n_step_returns_by_hand():
     """Two episodes in one [1, 6] batch (the first ends at step 2), n = 3, gamma = 0.5."""
     from tensordict import TensorDict
 
-    from crowdbench.algos.builders import build_actor, build_critic, build_loss
     from crowdbench.algos.nstep import STEPS, n_step
+    from crowdbench.algos.td3 import TD3
 
     T = 6
     reward = torch.tensor([1.0, 2.0, 4.0, 8.0, 16.0, 32.0]).view(1, T, 1, 1)
@@ -142,10 +142,7 @@ def test_n_step_returns_by_hand():
     assert out[STEPS].flatten().tolist() == [3, 2, 1, 3, 2, 1]  # the batch ends after step 5: shorter tails
     assert torch.equal(out["agents", "x"], batch["agents", "x"])  # the start state is unchanged
     # TorchRL's TD(0) estimator then bootstraps with gamma^m: r + 0.99^m * V(s_{t+m}) on non-terminal rows
-    enc = {"name": "mlp", "dim": 8, "hidden": [8]}
-    loss = build_loss("td3", build_actor("td3", enc, 1.0), build_critic(enc), 1, 1.0,
-                      {"policy_noise": 0.2, "noise_clip": 0.5, "loss_function": "l2", "gamma": 0.99,
-                       "per_weights": False})
+    loss = TD3(compose(["encoder=mlp", "encoder.dim=8", "encoder.hidden=[8]", "algo.gamma=0.99"]), 1).loss
     td = TensorDict({"next": {"agents": {"reward": torch.ones(3, 1, 1), "done": torch.zeros(3, 1, 1, dtype=torch.bool),
                                          "terminated": torch.tensor([False, False, True]).view(3, 1, 1),
                                          "state_action_value": torch.full((3, 1, 1), 2.0)}},

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from crowdbench.algos.builders import build_actor
+from crowdbench.algos.actors import build_actor
 from crowdbench.algos.checkpoint import LearnedPolicy, save_checkpoint
 from crowdbench.baselines.straight import StraightToGoal
 from crowdbench.cli import compose, main

@@ -20,7 +20,7 @@ REQUIRED = ("config", "actor", "frames")
 # 0.1.0) wrote the string tag LEGACY_TAG instead; its configs may lack keys added since, which
 # :func:`upgrade` fills with the values the format-1 code used. Bump FORMAT when a change to the
 # saved fields or config needs an upgrade step, and add that step to UPGRADES.
-FORMAT = 3
+FORMAT = 4
 LEGACY_TAG = "crowdbench-checkpoint-v1"
 
 
@@ -58,7 +58,25 @@ def _upgrade_2(state: dict) -> dict:
     return state
 
 
-UPGRADES = {1: _upgrade_1, 2: _upgrade_2}  # format n -> n + 1
+# the algo keys that algorithms did not read (their YAMLs carried every algorithm's keys before each
+# got its own schema); format 4 configs hold an algorithm's own keys only
+UNREAD_ALGO_KEYS = {
+    "td3": ("lr_alpha", "alpha_init"),
+    "ddpg": ("lr_alpha", "alpha_init", "policy_delay", "policy_noise", "noise_clip"),
+    "sac": ("policy_delay", "policy_noise", "noise_clip", "exploration_sigma", "exploration", "ou_theta",
+            "actor_squash"),
+}
+
+
+def _upgrade_3(state: dict) -> dict:
+    """Format 3 -> 4: drop the algo keys the algorithm never read."""
+    algo = state["config"].get("algo", {})
+    for key in UNREAD_ALGO_KEYS.get(algo.get("name"), ()):
+        algo.pop(key, None)
+    return state
+
+
+UPGRADES = {1: _upgrade_1, 2: _upgrade_2, 3: _upgrade_3}  # format n -> n + 1
 
 
 def upgrade(state: dict, version: int) -> dict:
@@ -127,13 +145,13 @@ class LearnedPolicy(Policy):
 
 def policy_from_checkpoint(path: Path) -> LearnedPolicy:
     """Rebuild the actor from a checkpoint's config and load its weights (shapes checked)."""
-    from crowdbench.algos.builders import build_actor
+    from crowdbench.algos.actors import build_actor
 
     state = load_checkpoint(path)
     cfg = state["config"]
     try:
         actor = build_actor(cfg["algo"]["name"], dict(cfg["encoder"]), cfg["env"]["v_max"],
-                            squash=cfg["algo"]["actor_squash"])
+                            squash=cfg["algo"].get("actor_squash", "radial"))
         actor.load_state_dict(state["actor"])
     except (KeyError, RuntimeError, ValueError, TypeError) as e:
         reason = " ".join(str(e).split())[:200]

@@ -20,7 +20,7 @@ from tensordict import TensorDictBase
 
 from crowdbench.envs.policy import GROUP
 
-STEPS = (GROUP, "steps_to_next_obs")  # the value estimator reads this key (algos/builders.py)
+STEPS = (GROUP, "steps_to_next_obs")  # the value estimator reads this key (algos/offpolicy.py)
 
 
 def n_step(batch: TensorDictBase, n: int, gamma: float) -> TensorDictBase:

@@ -25,12 +25,13 @@ from crowdbench.outputs import write_text_atomic
 
 BUFFER_PREFIX = "replay-"
 BUFFER_META = "crowdbench.json"
-# what resuming reads beyond the actor; a submitted (actor-only) checkpoint has none of it
-TRAINING_FIELDS = ("loss", "opt_actor", "opt_critic", "sampler", "torch_rng", "replay_rng", "updates")
+# what the loop reads to resume beyond the algorithm's own fields; a submitted (actor-only) checkpoint has none
+LOOP_FIELDS = ("sampler", "torch_rng", "updates")
 
 
-def check_resumable(state: dict, path: Path) -> None:
-    missing = [k for k in TRAINING_FIELDS if k not in state]
+def check_resumable(state: dict, path: Path, fields: tuple[str, ...] = ("loss",)) -> None:
+    """``fields``: what the algorithm reads back (crowdbench/algos/base.py ``resume_fields``)."""
+    missing = [k for k in (*fields, *LOOP_FIELDS) if k not in state]
     if "loss" in missing:
         raise CheckpointError(f"{path} is an actor-only (submitted) checkpoint; it cannot be resumed "
                               "(resume needs the run's own checkpoint.pt)")

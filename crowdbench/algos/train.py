@@ -1,10 +1,10 @@
-"""Off-policy training (TD3 / DDPG / SAC) on the batched replay env, readable top to bottom.
+"""The training loop, the same for every registered algorithm, readable top to bottom.
 
-Algorithm 1 of the paper with TorchRL parts: a ``Collector`` steps ``B`` environments at
-once (random actions during warm-up, then ``pi(G) + N(0, sigma)``), transitions go to a
-prioritised (or uniform) replay buffer, and every collected batch is followed by
-``utd * frames`` gradient updates: critics every update, actor and target networks every
-``policy_delay`` updates (TD3) or every update (DDPG, SAC).
+A TorchRL ``Collector`` steps ``B`` environments at once with the algorithm's collection policy
+(after its random warm-up, if any); each collected ``[B, T]`` batch goes to the algorithm's
+``learn`` (crowdbench/algos/base.py: a replay buffer and ``utd * frames`` updates for TD3 / DDPG /
+SAC, epochs of clipped-objective minibatches for PPO); the loop logs, probes the held-out
+scenes, checkpoints, and resumes from a checkpoint as if it had never stopped.
 """
 
 from __future__ import annotations
@@ -15,24 +15,14 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig, OmegaConf
 from torchrl.collectors import Collector
-from torchrl.data import LazyTensorStorage, TensorDictPrioritizedReplayBuffer, TensorDictReplayBuffer
 from torchrl.envs import InitTracker, RewardSum
 from torchrl.record.loggers.csv import CSVLogger
 from tqdm import tqdm
 
-from crowdbench.algos.builders import exploration_policy
 from crowdbench.algos.checkpoint import FORMAT, CheckpointError, load_checkpoint
-from crowdbench.algos.learner import Learner
-from crowdbench.algos.multiagent import agent_transitions, finished_episodes
-from crowdbench.algos.nstep import STEPS, n_step
-from crowdbench.algos.resume import (
-    check_resumable,
-    compact_storage,
-    remove_stale_buffers,
-    restore_buffer,
-    save_buffer,
-    truncate_log,
-)
+from crowdbench.algos.multiagent import finished_episodes
+from crowdbench.algos.registry import component
+from crowdbench.algos.resume import check_resumable, truncate_log
 from crowdbench.envs.core import COLLISION, SUCCESS
 from crowdbench.envs.factory import make_env
 from crowdbench.envs.policy import GROUP
@@ -40,33 +30,10 @@ from crowdbench.models.perf import tune_allocator
 from crowdbench.outputs import claim_dir, save_torch_atomic
 
 EPISODE_RETURN = (GROUP, "episode_reward")
-# the keys the losses read; everything else the env emits stays out of the replay buffer
-KEEP = [(GROUP, "observation"), (GROUP, "action"), ("next", GROUP, "observation"), ("next", GROUP, "reward"),
-        ("next", GROUP, "done"), ("next", GROUP, "terminated")]
-MODEL_KEYS = ("algo", "encoder", "env")
 # keys a resumed run may change: the replay kind (and whether the losses correct for its sampling), e.g.
 # continue a prioritized run with uniform replay; the saved transitions move into the new buffer (docs/training.md)
 RESUME_FREE = {"algo": ("replay", "per_alpha", "per_beta", "per_weights")}
-REPLAY_KIND = ("replay", "per_alpha", "per_beta", "buffer_size")
-
-
-def make_buffer(a: DictConfig, generator: torch.Generator):
-    """PER (the paper) or uniform replay, sampling from ``generator``.
-
-    The generator is not optional: without one TorchRL's prioritized sampler draws from numpy's
-    global RNG, which nothing seeds, and two runs with the same seed diverge at the first update.
-    """
-    storage = LazyTensorStorage(a.buffer_size)
-    if a.replay == "prioritized":
-        rb = TensorDictPrioritizedReplayBuffer(alpha=a.per_alpha, beta=a.per_beta, storage=storage,
-                                               batch_size=a.batch_size, priority_key="td_error",
-                                               generator=generator)
-    elif a.replay == "uniform":
-        rb = TensorDictReplayBuffer(storage=storage, batch_size=a.batch_size, generator=generator)
-    else:
-        raise ValueError(f"unknown replay {a.replay!r}; valid: prioritized, uniform")
-    compact_storage(rb)  # a saved buffer holds its transitions, not its capacity
-    return rb
+MODEL_KEYS = ("algo", "encoder", "env")
 
 
 def make_logger(kind: str, out_dir: Path):
@@ -87,9 +54,8 @@ class DurationEstimate:
     """Prints the run's budget, then, after the second batch with updates, its expected duration:
     measured seconds per collected frame and per update x what remains of each. Timing only: no RNG."""
 
-    def __init__(self, frames: int, utd: float, warmup: int, write):
-        self.frames, self.write = frames, write
-        self.updates = max(0, int(utd * (frames - warmup)))
+    def __init__(self, frames: int, updates: int, write):
+        self.frames, self.write, self.updates = frames, write, updates
         self.frame_s = self.update_s = 0.0
         self.seen = self.n_frames = self.n_updates = self.update_batches = 0
         self.t = time.perf_counter()
@@ -126,10 +92,11 @@ def check_budget(t: DictConfig) -> None:
         raise ValueError(f"train.total_frames must be a positive integer, got {total!r}")
 
 
-def load_resume_state(cfg: DictConfig, ckpt_path: Path) -> dict:
-    """The checkpoint to continue, checked: a training checkpoint whose model and task are ``cfg``'s."""
+def load_resume_state(cfg: DictConfig, ckpt_path: Path, fields: tuple[str, ...]) -> dict:
+    """The checkpoint to continue, checked: a training checkpoint (``fields`` and the loop's own) whose
+    model and task are ``cfg``'s."""
     state = load_checkpoint(ckpt_path)
-    check_resumable(state, ckpt_path)
+    check_resumable(state, ckpt_path, fields)
     saved = OmegaConf.create(state["config"])
     for key in MODEL_KEYS:  # the model and task must be the ones that were trained
         before, now = OmegaConf.to_container(saved[key]), OmegaConf.to_container(cfg[key])
@@ -164,73 +131,60 @@ def _train(cfg: DictConfig, out_dir: Path, resume: bool, progress: bool, probe) 
     if not resume and ckpt_path.exists():  # a fresh run would overwrite it and append to its logs
         raise CheckpointError(f"{out_dir} already holds a training run ({ckpt_path.name}); "
                               "pass resume=true to continue it, or choose another out=")
+    Algo = component(cfg.algo.name)
     if resume:
-        state = load_resume_state(cfg, ckpt_path)
-    a, t = cfg.algo, cfg.train
+        state = load_resume_state(cfg, ckpt_path, Algo.resume_fields)
+    t = cfg.train
     tune_allocator()
     torch.manual_seed(cfg.seed)
-    algo = a.name
     # replay (one robot) or self-play (n agents, one shared-weight policy); progress shaping for training only
     # InitTracker: the OU noise restarts from zero in every new episode
     env = make_env(cfg, progress_reward=t.progress_reward, human_dropout=t.human_dropout,
                    extra=(InitTracker(), RewardSum(in_keys=[(GROUP, "reward")], out_keys=[EPISODE_RETURN])))
-    learner = Learner(cfg)
-    actor = learner.actor
-    explore = exploration_policy(algo, actor, env.n_agents, cfg.env.v_max, a.exploration_sigma, a.exploration,
-                                 a.ou_theta)
-    replay_rng = torch.Generator().manual_seed(cfg.seed)
-    rb = make_buffer(a, replay_rng)
-    frames = updates = 0
+    algo = Algo(cfg, env.n_agents)
+    actor = algo.actor
+    frames = 0
     window: list[tuple[int, float]] = []  # (outcome, return) of recently finished episodes
     restored = False
     last_probe = 0
     if state is not None:
-        learner.load_state_dict(state)
+        algo.load_state_dict(state)
         env.sampler.load_state_dict(state["sampler"])
         torch.set_rng_state(state["torch_rng"])
-        frames, updates = int(state["frames"]), int(state["updates"])
-        if t.save_buffer:
-            saved_algo = OmegaConf.create(state["config"]["algo"])
-            same = all(saved_algo.get(k) == a.get(k) for k in REPLAY_KIND)
-            restored = restore_buffer(rb, state, ckpt_path, same, lambda: make_buffer(saved_algo, torch.Generator()))
-        replay_rng.set_state(state["replay_rng"])
-        rb.set_rng(replay_rng)  # loads() installs a generator of its own: sample from the checkpointed one
+        frames, algo.updates = int(state["frames"]), int(state["updates"])
+        restored = algo.restore_extra(state, ckpt_path)
         window = list(zip(*state["window"], strict=True)) if "window" in state else []
         last_probe = int(state.get("last_probe", frames))
         truncate_log(out_dir / "logs", frames)
 
     logger = make_logger(t.logger, out_dir)
-    fpb = t.frames_per_batch
     remaining = t.total_frames - frames
     if remaining <= 0:
-        return {"frames": frames, "updates": updates}
-    # a resumed run continues the warm-up where it stopped; without its saved buffer it refills one
-    # with the policy's actions (no updates until it holds algo.warmup transitions)
-    random_frames = a.warmup if state is None else max(0, a.warmup - frames) if restored else 0
+        return {"frames": frames, "updates": algo.updates}
     collector = Collector(
-        env, explore, frames_per_batch=fpb, total_frames=remaining, init_random_frames=random_frames,
+        env, algo.collection_policy(), frames_per_batch=t.frames_per_batch, total_frames=remaining,
+        init_random_frames=algo.random_frames(state is not None, restored, frames),
         auto_register_policy_transforms=False,
     )
 
     def save(wall_time_s: float):
-        try:  # the buffer first, then the checkpoint naming it, then the old buffer goes
-            ref = save_buffer(rb, out_dir, frames, updates) if t.save_buffer else None
+        try:  # what the checkpoint references first (the replay buffer), then the checkpoint, then cleanup
+            extra = algo.save_extra(out_dir, frames)
             save_torch_atomic(ckpt_path, {
-                "config": OmegaConf.to_container(cfg, resolve=True), **learner.state_dict(),
+                "config": OmegaConf.to_container(cfg, resolve=True), **algo.state_dict(), **extra,
                 "sampler": env.sampler.state_dict(), "torch_rng": torch.get_rng_state(),
-                "replay_rng": replay_rng.get_state(),
-                "frames": frames, "updates": updates, "wall_time_s": wall_time_s,
-                "replay": ref, "last_probe": last_probe,
+                "frames": frames, "updates": algo.updates, "wall_time_s": wall_time_s, "last_probe": last_probe,
                 "window": [[o for o, _ in window], [r for _, r in window]], "format": FORMAT,
             })
         except OSError as e:
             kept = f"; the previous checkpoint is kept ({ckpt_path})" if ckpt_path.exists() else ""
             raise CheckpointError(f"cannot write the checkpoint in {out_dir}: "
                                   f"{e.strerror or e} ({e.filename or ckpt_path}){kept}") from None
-        remove_stale_buffers(out_dir, ref and ref["dir"])
+        algo.after_save(out_dir, extra)
 
     bar = tqdm(total=t.total_frames, initial=frames, disable=not progress, unit="frame", dynamic_ncols=True)
-    eta = DurationEstimate(remaining, t.utd, a.warmup, bar.write)  # a resumed run refills warm-up frames too
+    # a resumed run refills warm-up frames too
+    eta = DurationEstimate(remaining, algo.expected_updates(remaining), bar.write)
     last_ckpt, start = frames, time.time()
     elapsed0 = float(state["wall_time_s"]) if state is not None else 0.0
     stats: dict = {}
@@ -240,21 +194,10 @@ def _train(cfg: DictConfig, out_dir: Path, resume: bool, progress: bool, probe) 
             frames += batch.numel()
             outcome, ret = finished_episodes(batch, EPISODE_RETURN)  # per agent episode
             window = (window + list(zip(outcome, ret, strict=True)))[-t.stats_window:]
-            if a.n_steps > 1:
-                batch = n_step(batch, a.n_steps, a.gamma)
-            rb.extend(agent_transitions(batch, KEEP + [STEPS] * (a.n_steps > 1)))
-
-            logs: dict[str, float] = {}
-            if len(rb) >= a.warmup:
-                n_updates = max(1, int(t.utd * batch.numel()))
-                for _ in range(n_updates):
-                    sample = rb.sample()
-                    logs.update(learner.update(sample, updates))
-                    updates += 1
-                    if a.replay == "prioritized":
-                        rb.update_tensordict_priority(sample)
-                eta.updated(n_updates)
-
+            before = algo.updates
+            logs = algo.learn(batch)
+            if algo.updates > before:
+                eta.updated(algo.updates - before)
             if window:
                 stats = {
                     "success_rate": sum(o == SUCCESS for o, _ in window) / len(window),
@@ -262,7 +205,7 @@ def _train(cfg: DictConfig, out_dir: Path, resume: bool, progress: bool, probe) 
                     "episode_return": sum(r for _, r in window) / len(window),
                 }
                 logs.update(stats)
-            logs["updates"] = updates
+            logs["updates"] = algo.updates
             logs["wall_time_s"] = wall = elapsed0 + time.time() - start
             if probe is not None and frames - last_probe >= t.probe_every:
                 logs.update(probe(actor))
@@ -271,7 +214,7 @@ def _train(cfg: DictConfig, out_dir: Path, resume: bool, progress: bool, probe) 
             for k, v in logs.items():
                 logger.log_scalar(k, v, step=frames)
             bar.update(batch.numel())
-            bar.set_postfix({k: f"{v:.2f}" for k, v in stats.items()} | {"upd": updates})
+            bar.set_postfix({k: f"{v:.2f}" for k, v in stats.items()} | {"upd": algo.updates})
             if frames - last_ckpt >= t.checkpoint_every:
                 save(wall)
                 last_ckpt = frames
@@ -284,4 +227,4 @@ def _train(cfg: DictConfig, out_dir: Path, resume: bool, progress: bool, probe) 
     finally:
         bar.close()
         collector.shutdown()
-    return {"frames": frames, "updates": updates, **stats}
+    return {"frames": frames, "updates": algo.updates, **stats}
