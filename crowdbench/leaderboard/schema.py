@@ -16,6 +16,7 @@ from urllib.parse import urlsplit
 import yaml
 
 from crowdbench import policies
+from crowdbench.algos.registry import names as algo_names
 from crowdbench.leaderboard.text import bad_char, one_line, short
 from crowdbench.leaderboard.tracks import TRACK_ORDER, trained_track
 
@@ -24,7 +25,6 @@ REPO_DIR = PACKAGE_DIR.parent
 DEFAULT_ROOT = Path("leaderboard")  # of the current directory; --root DIR chooses another
 KINDS = ("baseline", "learned", "oracle")
 BASELINE_POLICIES = policies.BASELINES
-ALGOS = ("td3", "ddpg", "sac")
 MAX_LEN = 200  # characters of a one-line string field
 MAX_LEN_FIELD = {"notes": 2000}
 MULTILINE = ("notes",)  # the only string field that may hold newlines (it is never shown in a table)
@@ -197,8 +197,8 @@ def validate_schema(path: Path, data) -> dict:
                                               f"{', '.join(BASELINE_POLICIES)}")
     if kind == "learned" and data.get("track", "v1") not in TRACK_ORDER:
         raise SubmissionError(path, "track", f"{short(data['track'])} is not a track; valid: {', '.join(TRACK_ORDER)}")
-    if kind == "learned" and data["algo"] not in ALGOS:
-        raise SubmissionError(path, "algo", f"{short(data['algo'])} is not one of {', '.join(ALGOS)}")
+    if kind == "learned" and data["algo"] not in algo_names():
+        raise SubmissionError(path, "algo", f"{short(data['algo'])} is not one of {', '.join(algo_names())}")
     if kind != "learned":
         for key in LEARNED_ONLY:
             if key in data:
