@@ -32,7 +32,7 @@ BUILTIN = {
     "td3": AlgorithmEntry("td3", "deterministic", "crowdbench.algos.td3"),
     "ddpg": AlgorithmEntry("ddpg", "deterministic", "crowdbench.algos.ddpg"),
     "sac": AlgorithmEntry("sac", "tanh_normal", "crowdbench.algos.sac"),
-    # "ppo": AlgorithmEntry("ppo", "tanh_normal", "crowdbench.algos.ppo"),
+    "ppo": AlgorithmEntry("ppo", "tanh_normal", "crowdbench.algos.ppo"),
 }
 _ENTRIES: dict[str, AlgorithmEntry] = dict(BUILTIN)
 
