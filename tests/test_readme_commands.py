@@ -43,8 +43,10 @@ INVOCATIONS: dict[str, list[list[str]]] = {
     "crowdbench eval ... out=DIR": [["eval", "policy=straight", *EVAL, "out={tmp}/eval_dir"]],
     "crowdbench run algo=td3 encoder=gatedgcn": [["run", "algo=td3", "encoder=gatedgcn", *RUN, "out={run}"]],
     "crowdbench eval policy=RUN/checkpoint.pt": [["eval", "policy={run}/checkpoint.pt", *EVAL]],
-    "crowdbench run algo=ddpg\\|sac encoder=gcn\\|mlp": [["run", "algo=ddpg", "encoder=gcn", *RUN],
-                                                         ["run", "algo=sac", "encoder=mlp", *RUN]],
+    "crowdbench run algo=ddpg\\|sac\\|ppo encoder=gcn\\|mlp": [
+        ["run", "algo=ddpg", "encoder=gcn", *RUN], ["run", "algo=sac", "encoder=mlp", *RUN],
+        ["run", "algo=ppo", "encoder=mlp", "algo.minibatch_size=64", "algo.epochs=1",
+         *(o for o in RUN if not o.startswith("algo.warmup"))]],
     "crowdbench run experiment=paper": [["run", "experiment=paper", *RUN, "train.utd=0.02"]],
     "crowdbench run ... train.total_frames=N train.max_minutes=30 seed=S":
         [["run", *RUN, "train.total_frames=256", "train.max_minutes=30", "seed=1"]],
