@@ -1,0 +1,144 @@
+"""Time to result: wall time until the held-out probe first reaches a target success, per recipe and seed.
+
+    python benchmarks/time_to_success.py                                  # every recipe, seeds 0 1 2
+    python benchmarks/time_to_success.py --recipes td3 ppo --seeds 0 --minutes 10
+    python benchmarks/time_to_success.py --plot docs/img/time_to_success.png --summary runs/tts/summary.json
+
+Each run trains with ``crowdbench.algos.train.train`` exactly as ``crowdbench run`` does, with ``cpus``
+threads, for at most ``--minutes`` of training wall time. Every ``--probe-every`` frames the held-out
+probe evaluates the current actor on all four paper scenes (``--episodes`` protocol episodes each,
+deterministic actions) and records their average success. The probe's own time is subtracted from the
+wall time (it is the measurement, not training). Reported per run: the training time at which the
+average first reached ``--target`` (or "not reached"), and the final probe's average success.
+
+Runs execute one after the other, so a run has the machine to itself only if nothing else runs:
+the load average is recorded with each run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+RECIPES = {
+    "td3": [],  # the default recipe (crowdbench run algo=td3 encoder=gatedgcn)
+    "sac": ["method=gatedgcn_sac"],
+    "ppo": ["experiment=ppo"],
+    "td3_orca": ["train.pretrain=orca"],
+}
+
+
+def probe_all(cfg, scenes, episodes: int, spent: list[float]):
+    from crowdbench.algos.checkpoint import LearnedPolicy
+    from crowdbench.envs.core import SimConfig
+    from crowdbench.eval import evaluate
+
+    def probe(actor) -> dict[str, float]:
+        t = time.perf_counter()
+        res = evaluate(LearnedPolicy(actor, frame=cfg.env.frame), list(scenes), episodes,
+                       sim_overrides=SimConfig.fields_of(cfg.env))
+        avg = sum(res["scenes"][s]["success_rate"]["mean"] for s in scenes) / len(scenes)
+        spent.append(time.perf_counter() - t)
+        return {"probe_paper_success": avg}
+
+    return probe
+
+
+def one_run(recipe: str, seed: int, args) -> dict:
+    import torch
+
+    from crowdbench.algos.checkpoint import load_checkpoint, policy_from_checkpoint
+    from crowdbench.algos.train import train
+    from crowdbench.cli import compose
+    from crowdbench.envs.protocol import PAPER_SCENES
+
+    overrides = [*RECIPES[recipe], f"seed={seed}", f"cpus={args.cpus}", f"train.probe_every={args.probe_every}",
+                 f"train.max_minutes={args.minutes}", "train.save_buffer=false", *args.overrides]
+    cfg = compose(overrides)
+    torch.set_num_threads(cfg.cpus)
+    spent: list[float] = []
+    load0 = os.getloadavg()[0]
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "run"
+        # max_minutes counts the probes too: give the budget back for them
+        cfg.train.max_minutes = args.minutes + args.probe_allowance
+        probe = probe_all(cfg, PAPER_SCENES, args.episodes, spent)
+        stats = train(cfg, out, progress=False, probe=probe)
+        rows = [line.split(",") for line in (out / "logs" / "scalars" / "probe_paper_success.csv").read_text().split()]
+        walls = dict(line.split(",") for line in (out / "logs" / "scalars" / "wall_time_s.csv").read_text().split())
+        state = load_checkpoint(out / "checkpoint.pt")
+        if int(rows[-1][0]) != stats["frames"]:  # the budget ended between probes: probe the final actor
+            rows.append([str(stats["frames"]), str(probe(policy_from_checkpoint(out / "checkpoint.pt").actor)
+                                                   ["probe_paper_success"])])
+            walls[str(stats["frames"])] = str(state["wall_time_s"])
+    curve, reached = [], None
+    for i, (frames, success) in enumerate(rows):
+        # the loop reads the wall time before it probes: subtract the probes before this one
+        train_s = float(walls[frames]) - sum(spent[:i])
+        curve.append((int(float(frames)), train_s, float(success)))
+        if reached is None and float(success) >= args.target:
+            reached = train_s
+    return {"recipe": recipe, "seed": seed, "overrides": overrides, "curve": curve, "time_to_target_s": reached,
+            "final_success": curve[-1][2] if curve else None, "probe_s": sum(spent),
+            "load_avg_start": load0, "load_avg_end": os.getloadavg()[0]}
+
+
+def plot(runs: list[dict], target: float, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    colours = dict(zip(RECIPES, plt.rcParams["axes.prop_cycle"].by_key()["color"], strict=False))
+    for r in runs:
+        _, t, s = zip(*r["curve"], strict=True) if r["curve"] else ((), (), ())
+        ax.plot([x / 60 for x in t], s, color=colours.get(r["recipe"]), alpha=0.8,
+                label=r["recipe"] if r["seed"] == min(q["seed"] for q in runs if q["recipe"] == r["recipe"]) else None)
+    ax.axhline(target, color="grey", ls="--", lw=1)
+    ax.set_xlabel("training wall time (min, probes excluded)")
+    ax.set_ylabel("average success, 4 paper scenes")
+    ax.set_ylim(0, 1)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--recipes", nargs="+", default=list(RECIPES), choices=list(RECIPES))
+    p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    p.add_argument("--minutes", type=float, default=10.0, help="training wall time per run")
+    p.add_argument("--probe-allowance", type=float, default=10.0, help="extra minutes for the probes")
+    p.add_argument("--probe-every", type=int, default=7168)
+    p.add_argument("--episodes", type=int, default=50)
+    p.add_argument("--target", type=float, default=0.90)
+    p.add_argument("--cpus", type=int, default=2)
+    p.add_argument("--overrides", nargs="*", default=[])
+    p.add_argument("--summary", type=Path)
+    p.add_argument("--plot", type=Path)
+    args = p.parse_args(argv)
+    runs = []
+    for recipe in args.recipes:
+        for seed in args.seeds:
+            r = one_run(recipe, seed, args)
+            runs.append(r)
+            t = r["time_to_target_s"]
+            print(f"{recipe:10s} seed {seed}: {'%.1f min' % (t / 60) if t is not None else 'not reached':>12s} to "
+                  f"{args.target:.2f}; final {r['final_success']:.3f} after {r['curve'][-1][0]:,} frames; "
+                  f"load {r['load_avg_start']:.2f}/{r['load_avg_end']:.2f}", flush=True)
+            if args.summary:
+                args.summary.parent.mkdir(parents=True, exist_ok=True)
+                args.summary.write_text(json.dumps(runs, indent=1) + "\n")
+    if args.plot:
+        plot(runs, args.target, args.plot)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
