@@ -1,0 +1,141 @@
+"""Where the time of one TD3 update goes: ``Learner.update`` as ``crowdbench run`` makes it.
+
+    python benchmarks/profile_update.py                                  # timings, every encoder
+    python benchmarks/profile_update.py --encoders gatedgcn,sarl --profile
+    python benchmarks/profile_update.py --overrides "algo.batch_size=256"
+
+The default recipe (``algo=td3``, uniform replay, lookahead critic 0.25 s, batch 100) on a
+uniform buffer of real students001 transitions. TD3 updates the actor every 2nd step, so the
+cost per update is the mean of a critic-only step and a full step (critics + actor + targets).
+Rounds alternate between the encoders, so that a burst of load on the shared machine hits all
+of them; the figure is the median over rounds of each round's median. ``--profile`` adds, per
+encoder, the top operators of ``torch.profiler`` (self CPU time) and the top Python functions of
+``cProfile`` over one critic-only + one full step.
+
+The script only uses ``Learner`` and the config, so it also times an older checkout:
+``PYTHONPATH=/path/to/old python benchmarks/profile_update.py`` (the "before" figures).
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import io
+import os
+import pstats
+import statistics
+import time
+
+import torch
+
+ENCODERS = "gatedgcn,sarl,lstm_rl,rgl,gat,dsrnn"
+
+
+def make_learner(enc: str, overrides: list[str], frames: int):
+    from torchrl.collectors import Collector
+
+    from crowdbench.algos.builders import exploration_policy
+    from crowdbench.algos.learner import Learner
+    from crowdbench.algos.multiagent import agent_transitions
+    from crowdbench.algos.train import KEEP, make_buffer
+    from crowdbench.cli import compose
+    from crowdbench.envs.factory import make_env
+
+    cfg = compose([f"encoder={enc}", *overrides])
+    torch.manual_seed(0)
+    env = make_env(cfg)
+    learner = Learner(cfg)
+    rb = make_buffer(cfg.algo, torch.Generator().manual_seed(0))
+    policy = exploration_policy("td3", learner.actor, env.n_agents, cfg.env.v_max, 0.3)
+    for batch in Collector(env, policy, frames_per_batch=min(1024, frames), total_frames=frames,
+                           auto_register_policy_transforms=False):
+        rb.extend(agent_transitions(batch, KEEP))
+    return learner, rb, cfg
+
+
+def step_fn(learner, rb):
+    def step(n: int):
+        """Update ``n``: critic-only unless ``n`` is a multiple of policy_delay (then actor + targets too)."""
+        sample = rb.sample()
+        learner.update(sample, n)
+        rb.update_tensordict_priority(sample)  # what train.py does (a no-op for uniform replay)
+    return step
+
+
+def time_round(step, reps: int) -> float:
+    """Median ms per update over ``reps`` pairs (critic-only step, full step)."""
+    ts = []
+    for _ in range(reps):
+        t = time.perf_counter()
+        step(1)
+        step(0)
+        ts.append((time.perf_counter() - t) * 500)
+    return statistics.median(ts)
+
+
+def profile(step, enc: str, top: int) -> None:
+    from torch.profiler import ProfilerActivity
+    from torch.profiler import profile as tprofile
+
+    for _ in range(3):
+        step(1), step(0)
+    with tprofile(activities=[ProfilerActivity.CPU]) as prof:
+        for _ in range(5):
+            step(1), step(0)
+    print(f"\n### {enc}: torch.profiler, 5 x (critic-only + full step), self CPU time")
+    print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=top, max_name_column_width=48))
+    pr = cProfile.Profile()
+    pr.enable()
+    for _ in range(5):
+        step(1), step(0)
+    pr.disable()
+    s = io.StringIO()
+    pstats.Stats(pr, stream=s).sort_stats("cumulative").print_stats(top)
+    print(f"### {enc}: cProfile, 5 x (critic-only + full step), by cumulative time")
+    print("\n".join(line for line in s.getvalue().splitlines() if line.strip()))
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--reps", type=int, default=15, help="update pairs per round")
+    ap.add_argument("--rounds", type=int, default=5)
+    ap.add_argument("--frames", type=int, default=2048, help="transitions collected into the buffer")
+    ap.add_argument("--encoders", default=ENCODERS)
+    ap.add_argument("--overrides", default="", help="training overrides, e.g. 'algo.batch_size=256'")
+    ap.add_argument("--profile", action="store_true")
+    ap.add_argument("--top", type=int, default=25)
+    args = ap.parse_args(argv)
+    from crowdbench.models.perf import tune_allocator
+
+    torch.set_num_threads(args.threads)
+    tune_allocator()
+    overrides = args.overrides.split()
+    encoders = args.encoders.split(",")
+    setups = {}
+    for enc in encoders:
+        learner, rb, cfg = make_learner(enc, overrides, args.frames)
+        step = step_fn(learner, rb)
+        for _ in range(5):  # warm-up (first calls allocate, build caches, compile)
+            step(1), step(0)
+        setups[enc] = (step, cfg.algo.batch_size)
+    print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, load average "
+          f"{' '.join(f'{x:.2f}' for x in os.getloadavg())}" + (f"; {' '.join(overrides)}" if overrides else ""))
+    rounds = {enc: [] for enc in encoders}
+    for _ in range(args.rounds):
+        for enc in encoders:
+            rounds[enc].append(time_round(setups[enc][0], args.reps))
+    print(f"\n## ms per update (median of {args.rounds} round medians of {args.reps} update pairs)")
+    print(f"  {'encoder':10s}{'ms/update':>11s}{'us/sample':>11s}{'updates/s':>11s}   rounds")
+    for enc in encoders:
+        ms, b = statistics.median(rounds[enc]), setups[enc][1]
+        print(f"  {enc:10s}{ms:11.2f}{1000 * ms / b:11.1f}{1000 / ms:11.1f}   "
+              + " ".join(f"{r:.1f}" for r in rounds[enc]))
+    print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    if args.profile:
+        for enc in encoders:
+            profile(setups[enc][0], enc, args.top)
+
+
+if __name__ == "__main__":
+    main()
