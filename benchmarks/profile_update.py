@@ -31,7 +31,8 @@ import torch
 ENCODERS = "gatedgcn,sarl,lstm_rl,rgl,gat,dsrnn"
 
 
-def make_learner(enc: str, overrides: list[str], frames: int):
+def make_learner(enc: str, overrides: list[str], frames: int, pseudo_vmap: bool = False, compact: bool = False):
+    from omegaconf import open_dict
     from torchrl.collectors import Collector
 
     from crowdbench.algos.builders import exploration_policy
@@ -40,11 +41,18 @@ def make_learner(enc: str, overrides: list[str], frames: int):
     from crowdbench.algos.train import KEEP, make_buffer
     from crowdbench.cli import compose
     from crowdbench.envs.factory import make_env
+    from crowdbench.models.compact import COMPACTABLE
 
     cfg = compose([f"encoder={enc}", *overrides])
+    if compact and enc in COMPACTABLE:  # not a config key (yet): passed to make_encoder directly
+        with open_dict(cfg):
+            cfg.encoder.compact = True
     torch.manual_seed(0)
     env = make_env(cfg)
     learner = Learner(cfg)
+    if pseudo_vmap:  # what TD3Loss(deactivate_vmap=True) would do: the critic copies one after the other
+        learner.loss.deactivate_vmap = True
+        learner.loss._make_vmap()
     rb = make_buffer(cfg.algo, torch.Generator().manual_seed(0))
     policy = exploration_policy("td3", learner.actor, env.n_agents, cfg.env.v_max, 0.3)
     for batch in Collector(env, policy, frames_per_batch=min(1024, frames), total_frames=frames,
@@ -71,6 +79,53 @@ def time_round(step, reps: int) -> float:
         step(0)
         ts.append((time.perf_counter() - t) * 500)
     return statistics.median(ts)
+
+
+def phases(learner, step, reps: int) -> dict[str, float]:
+    """ms per update spent in each phase of ``Learner.update`` (wrapped from outside, so that the
+    learner runs unchanged): graph preparation, the critic term's forward, backward and Adam step,
+    the actor term's, the Polyak update; "other" is the rest (sampling, priorities, Python)."""
+    import crowdbench.algos.learner as lmod
+
+    acc: dict[str, float] = {}
+    current = ["critic"]
+
+    def timed(name, fn):
+        def run(*a, **k):
+            t = time.perf_counter()
+            try:
+                return fn(*a, **k)
+            finally:
+                acc[name] = acc.get(name, 0.0) + time.perf_counter() - t
+        return run
+
+    def term(name, fn):
+        def run(*a, **k):
+            current[0] = name
+            return timed(f"{name} forward", fn)(*a, **k)
+        return run
+
+    backward = torch.Tensor.backward
+    saved = (lmod.prepare_batch, learner.critic_loss, learner.actor_loss, learner.opt_critic.step,
+             learner.opt_actor.step, learner.target_updater.step)
+    lmod.prepare_batch = timed("prepare_batch (graphs)", lmod.prepare_batch)
+    learner.critic_loss = term("critic", learner.critic_loss)
+    learner.actor_loss = term("actor", learner.actor_loss)
+    learner.opt_critic.step = timed("critic Adam step", learner.opt_critic.step)
+    learner.opt_actor.step = timed("actor Adam step", learner.opt_actor.step)
+    learner.target_updater.step = timed("Polyak update", learner.target_updater.step)
+    torch.Tensor.backward = lambda self, *a, **k: timed(f"{current[0]} backward", backward)(self, *a, **k)
+    try:
+        t = time.perf_counter()
+        for _ in range(reps):
+            step(1), step(0)
+        total = time.perf_counter() - t
+    finally:
+        torch.Tensor.backward = backward
+        lmod.prepare_batch, learner.critic_loss, learner.actor_loss = saved[:3]
+        learner.opt_critic.step, learner.opt_actor.step, learner.target_updater.step = saved[3:]
+    acc["other"] = total - sum(acc.values())
+    return {k: 1000 * v / (2 * reps) for k, v in acc.items()}
 
 
 def profile(step, enc: str, top: int) -> None:
@@ -103,7 +158,11 @@ def main(argv=None):
     ap.add_argument("--frames", type=int, default=2048, help="transitions collected into the buffer")
     ap.add_argument("--encoders", default=ENCODERS)
     ap.add_argument("--overrides", default="", help="training overrides, e.g. 'algo.batch_size=256'")
+    ap.add_argument("--compact", action="store_true", help="sarl, rgl, dsrnn: the opt-in compacted human slots "
+                    "(models/compact.py)")
     ap.add_argument("--profile", action="store_true")
+    ap.add_argument("--pseudo-vmap", action="store_true", help="TD3Loss's deactivate_vmap=True (an option for "
+                    "algos/builders.py, not the shipped recipe): the two critics as two plain calls")
     ap.add_argument("--top", type=int, default=25)
     args = ap.parse_args(argv)
     from crowdbench.models.perf import tune_allocator
@@ -114,13 +173,14 @@ def main(argv=None):
     encoders = args.encoders.split(",")
     setups = {}
     for enc in encoders:
-        learner, rb, cfg = make_learner(enc, overrides, args.frames)
+        learner, rb, cfg = make_learner(enc, overrides, args.frames, args.pseudo_vmap, args.compact)
         step = step_fn(learner, rb)
         for _ in range(5):  # warm-up (first calls allocate, build caches, compile)
             step(1), step(0)
-        setups[enc] = (step, cfg.algo.batch_size)
+        setups[enc] = (step, cfg.algo.batch_size, learner)
     print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, load average "
-          f"{' '.join(f'{x:.2f}' for x in os.getloadavg())}" + (f"; {' '.join(overrides)}" if overrides else ""))
+          f"{' '.join(f'{x:.2f}' for x in os.getloadavg())}" + (f"; {' '.join(overrides)}" if overrides else "")
+          + ("; pseudo-vmap critics" if args.pseudo_vmap else "") + ("; compacted humans" if args.compact else ""))
     rounds = {enc: [] for enc in encoders}
     for _ in range(args.rounds):
         for enc in encoders:
@@ -132,6 +192,14 @@ def main(argv=None):
         print(f"  {enc:10s}{ms:11.2f}{1000 * ms / b:11.1f}{1000 / ms:11.1f}   "
               + " ".join(f"{r:.1f}" for r in rounds[enc]))
     print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    print("\n## where an update's time goes (ms per update, mean over the policy delay; one run of "
+          f"{args.reps} update pairs)")
+    table = {enc: phases(setups[enc][2], setups[enc][0], args.reps) for enc in encoders}
+    names = list(dict.fromkeys(k for t in table.values() for k in t))
+    print(f"  {'phase':24s}" + "".join(f"{enc:>10s}" for enc in encoders))
+    for k in names:
+        print(f"  {k:24s}" + "".join(f"{table[enc].get(k, 0.0):10.2f}" for enc in encoders))
+    print(f"  {'total':24s}" + "".join(f"{sum(table[enc].values()):10.2f}" for enc in encoders))
     if args.profile:
         for enc in encoders:
             profile(setups[enc][0], enc, args.top)

@@ -10,8 +10,8 @@ from worlds import students_obs
 
 from crowdbench.models import ENCODERS, make_encoder
 from crowdbench.models.heads import Critic
-from crowdbench.models.lstm_rl import max_steps, sorted_sequence
-from crowdbench.models.vmap_once import once
+from crowdbench.models.lstm_rl import sorted_sequence
+from crowdbench.models.vmap_once import batch_max, once
 
 SMALL = {"gatedgcn": {"dim": 16}, "gcn": {"dim": 16}, "mlp": {"dim": 16, "hidden": [32]},
          "sarl": {"dim": 16, "embed": [16, 16], "interact": [16], "attention": [16], "hidden": [16]},
@@ -101,7 +101,7 @@ def test_lstm_cell_loop_equals_nn_lstm_with_gradients(real_obs):
     mask = mask.clone()
     mask[0] = False  # a row without observed humans
     seq, n = sorted_sequence(robot, humans, mask.bool())
-    assert 0 < max_steps(n) < seq.shape[1]  # the loop is cut short
+    assert 0 < batch_max(n) < seq.shape[1]  # the loop is cut short
     params = {"enc." + k: v.detach().unsqueeze(0).requires_grad_() for k, v in enc.named_parameters()}
     looped = torch.vmap(lambda p: torch.func.functional_call(_Encode(enc), p, (robot, seq, n)))(params)[0]
     plain = enc.encode(robot, seq, n)
@@ -123,8 +123,8 @@ class _Encode(torch.nn.Module):
         return self.enc.encode(*args)
 
 
-def test_max_steps_reads_every_vmapped_copy():
+def test_batch_max_reads_every_vmapped_copy():
     n = torch.tensor([[1, 4, 2], [7, 0, 3]])
-    assert max_steps(n) == 7
-    assert torch.vmap(lambda x: torch.tensor(max_steps(x)))(n).tolist() == [7, 7]
-    assert max_steps(torch.zeros(0, dtype=torch.long)) == 0
+    assert batch_max(n) == 7
+    assert torch.vmap(lambda x: torch.tensor(batch_max(x)))(n).tolist() == [7, 7]
+    assert batch_max(torch.zeros(0, dtype=torch.long)) == 0

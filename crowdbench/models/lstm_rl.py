@@ -27,21 +27,13 @@ from __future__ import annotations
 
 import torch
 from torch import nn
-from torch._C import _functorch as _ft
 
 from crowdbench.models.base import is_plain
 from crowdbench.models.graph import _gather_rows, flatten_obs, unpack_obs
 from crowdbench.models.sarl import relu_mlp
+from crowdbench.models.vmap_once import batch_max
 
 HUMAN_IN = 5  # [px - px_r, py - py_r, vx, vy, d]
-
-
-def max_steps(n: torch.Tensor) -> int:
-    """The largest entry of ``n`` over the batch and every vmapped copy (a Python int: under
-    ``torch.func`` read from the underlying tensor, which holds all copies)."""
-    while _ft.is_functorch_wrapped_tensor(n):
-        n = _ft.get_unwrapped(n)
-    return int(n.max()) if n.numel() else 0
 
 
 def sorted_sequence(robot: torch.Tensor, humans: torch.Tensor, mask: torch.Tensor):
@@ -77,7 +69,7 @@ class LSTMRLEncoder(nn.Module):
         h = c = seq.new_zeros(seq.shape[0], self.hidden_size)
         out = []
         # steps after every row's last observed human cannot reach h_n (the LSTM is causal)
-        for t in range(max_steps(n)):
+        for t in range(batch_max(n)):
             i, f, g, o = (xs[t] + h @ w_hh.T).chunk(4, -1)
             c = torch.sigmoid(f) * c + torch.sigmoid(i) * torch.tanh(g)
             h = torch.sigmoid(o) * torch.tanh(c)

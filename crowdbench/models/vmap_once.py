@@ -56,3 +56,11 @@ def once(fn, *args):
         return fn(*args)
     out = fn(*plain)
     return _pytree.tree_map(lambda t: _ft._add_batch_dim(t.unsqueeze(0).expand(n, *t.shape), 0, level), out)
+
+
+def batch_max(n: torch.Tensor) -> int:
+    """The largest entry of ``n`` over the batch and every vmapped copy (a Python int: under
+    ``torch.func`` read from the underlying tensor, which holds all copies)."""
+    while _ft.is_functorch_wrapped_tensor(n):
+        n = _ft.get_unwrapped(n)
+    return int(n.max()) if n.numel() else 0
