@@ -41,12 +41,14 @@ def make_learner(enc: str, overrides: list[str], frames: int, pseudo_vmap: bool 
     from crowdbench.algos.train import KEEP, make_buffer
     from crowdbench.cli import compose
     from crowdbench.envs.factory import make_env
-    from crowdbench.models.compact import COMPACTABLE
 
     cfg = compose([f"encoder={enc}", *overrides])
-    if compact and enc in COMPACTABLE:  # not a config key (yet): passed to make_encoder directly
-        with open_dict(cfg):
-            cfg.encoder.compact = True
+    if compact:
+        from crowdbench.models.compact import COMPACTABLE
+
+        if enc in COMPACTABLE:  # not a config key (yet): passed to make_encoder directly
+            with open_dict(cfg):
+                cfg.encoder.compact = True
     torch.manual_seed(0)
     env = make_env(cfg)
     learner = Learner(cfg)

@@ -128,3 +128,41 @@ def test_batch_max_reads_every_vmapped_copy():
     assert batch_max(n) == 7
     assert torch.vmap(lambda x: torch.tensor(batch_max(x)))(n).tolist() == [7, 7]
     assert batch_max(torch.zeros(0, dtype=torch.long)) == 0
+
+
+@pytest.mark.parametrize("name", ["gatedgcn", "lstm_rl"])
+def test_lookahead_critic_term_needs_no_root_graphs(real_obs, name):
+    """``prepare_batch(include_root=False)``: a TD3 critic-only step with a lookahead critic reads the
+    actor's preprocessing of the next observation only; its loss and priorities are bit for bit those
+    of a fully prepared batch (what learner_update.patch relies on)."""
+    from omegaconf import OmegaConf
+    from tensordict import TensorDict
+    from torchrl.objectives import SoftUpdate
+
+    from crowdbench.algos.builders import build_actor, build_critic, build_loss
+    from crowdbench.envs.policy import OBS
+    from crowdbench.models.heads import prepare_batch
+
+    a = OmegaConf.load("crowdbench/conf/algo/td3.yaml")
+    torch.manual_seed(3)
+    actor = build_actor("td3", {"name": name, **SMALL[name]}, 1.0)
+    critic = build_critic({"name": name, **SMALL[name]}, lookahead_dt=0.25)
+    loss = build_loss("td3", actor, critic, 1, 1.0, a, prepared=True)
+    SoftUpdate(loss, tau=a.tau)  # as the learner: target parameters with an updater
+    robot, humans, mask, action = real_obs
+    obs = {"robot": robot, "humans": humans, "humans_mask": mask}
+    nxt = {k: v.roll(1, 0) for k, v in obs.items()}
+    zeros = torch.zeros(12, 1, 1, dtype=torch.bool)
+    batch = TensorDict({"agents": {"observation": obs, "action": action},
+                        "next": {"agents": {"observation": nxt, "reward": torch.randn(12, 1, 1), "done": zeros,
+                                            "terminated": zeros}}}, batch_size=[12])
+    enc = actor.module.encoder
+    results = []
+    for include_root in (True, False):
+        td = prepare_batch(batch.clone(), enc, include_root=include_root)
+        assert ((OBS + (enc.prep_key,)) in td.keys(True)) == include_root
+        assert ("next",) + OBS + (enc.prep_key,) in td.keys(True)
+        torch.manual_seed(4)  # the target policy noise
+        q_loss, meta = loss.value_loss(td)
+        results.append((q_loss.detach(), meta["td_error"]))
+    assert torch.equal(results[0][0], results[1][0]) and torch.equal(results[0][1], results[1][1])

@@ -290,11 +290,12 @@ def trace_for_inference(actor: Actor, robot, humans, humans_mask) -> torch.jit.S
 
 
 @torch.no_grad()
-def prepare_batch(td, *encoders, include_next: bool = True):
-    """Add every distinct encoder preprocessing of ``td``'s observation (and of
-    ``("next", ...)`` if present and ``include_next``) under ``("agents", "observation", prep_key)``.
-    Returns ``td`` (modified in place)."""
-    roots = [()]
+def prepare_batch(td, *encoders, include_next: bool = True, include_root: bool = True):
+    """Add every distinct encoder preprocessing of ``td``'s observation (if ``include_root``) and of
+    ``("next", ...)`` (if present and ``include_next``) under ``("agents", "observation", prep_key)``.
+    Returns ``td`` (modified in place). ``include_root=False`` serves a TD3 critic-only step with
+    a lookahead critic, which reads the actor's graphs of the next observation only."""
+    roots = [()] if include_root else []
     if include_next and ("next",) + OBS + ("robot",) in td.keys(include_nested=True):
         roots.append(("next",))
     done = set()
