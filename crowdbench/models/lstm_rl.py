@@ -19,8 +19,8 @@ unobserved slots after them; the LSTM runs over the whole padded sequence (stati
 cannot affect it; a row without observed humans gets the LSTM's initial state ``h_0 = 0``.
 ``torch.nn.LSTM`` has no ``torch.vmap`` batching rule, so under ``torch.func`` transforms (TorchRL's
 vmapped critics) the same cell equations run as a Python loop on the module's own weights (tested
-equal to ``nn.LSTM``), over the steps up to the batch's largest number of observed humans. ``h_nodes`` is ``robot_h`` with a node axis of size 1;
-``last_gates`` is ``None``.
+equal to ``nn.LSTM``), over the steps up to the batch's largest number of observed humans.
+``h_nodes`` is ``robot_h`` with a node axis of size 1; ``last_gates`` is ``None``.
 """
 
 from __future__ import annotations
