@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from torch import nn
 
+from crowdbench.models.compact import COMPACTABLE, compacted
 from crowdbench.models.dsrnn import DSRNNEncoder
 from crowdbench.models.gat import GATEncoder
 from crowdbench.models.gatedgcn import GatedGCNEncoder
@@ -29,12 +30,17 @@ ENCODERS: dict[str, type[nn.Module]] = {
 }
 
 
-def make_encoder(name: str, **cfg) -> nn.Module:
+def make_encoder(name: str, compact: bool = False, **cfg) -> nn.Module:
     """Instantiate the encoder registered as ``name`` with the config ``cfg``
-    (e.g. ``make_encoder(**yaml.safe_load(open("crowdbench/conf/encoder/gatedgcn.yaml")))``)."""
+    (e.g. ``make_encoder(**yaml.safe_load(open("crowdbench/conf/encoder/gatedgcn.yaml")))``).
+    ``compact=True``: training-side compaction of the human slots (models/compact.py; sarl, rgl, dsrnn)."""
     if name not in ENCODERS:
         raise ValueError(f"unknown encoder {name!r}; valid encoders: {', '.join(sorted(ENCODERS))}")
-    return ENCODERS[name](**cfg)
+    if not compact:
+        return ENCODERS[name](**cfg)
+    if name not in COMPACTABLE:
+        raise ValueError(f"encoder {name!r} has no compacted training path; compactable: {', '.join(COMPACTABLE)}")
+    return compacted(ENCODERS[name])(**cfg)
 
 
 __all__ = ["ENCODERS", "DSRNNEncoder", "GATEncoder", "GCNEncoder", "GatedGCNEncoder", "LSTMRLEncoder", "MLPEncoder",

@@ -43,6 +43,7 @@ from torch import nn
 from crowdbench.envs.core import clip_speed
 from crowdbench.envs.policy import ACTION, GROUP, OBS
 from crowdbench.models.graph import unpack_obs
+from crowdbench.models.vmap_once import once
 
 OBS_KEYS = [OBS + ("robot",), OBS + ("humans",), OBS + ("humans_mask",)]
 STATE_ACTION_VALUE = (GROUP, "state_action_value")
@@ -161,9 +162,15 @@ class Critic(nn.Module):
         return self.head(torch.cat((robot_h, action.to(robot_h.dtype)), -1))
 
     def forward(self, robot, humans, humans_mask, action) -> torch.Tensor:
+        # the prediction and the encoder's preprocessing read no parameter: under TorchRL's vmapped
+        # critics they run once for both copies (models/vmap_once.py)
+        return self.q(forward_prepared(self.encoder, once(self._prepare, robot, humans, humans_mask, action))[1],
+                      action)
+
+    def _prepare(self, robot, humans, humans_mask, action) -> dict:
         if self.lookahead_dt > 0:
             robot, humans, humans_mask = lookahead(robot, humans, humans_mask, action, self.lookahead_dt, self.v_max)
-        return self.q(self.encoder(robot, humans, humans_mask)[1], action)
+        return prepare(self.encoder, robot, humans, humans_mask)
 
     def forward_prepared(self, prep: dict, action: torch.Tensor) -> torch.Tensor:
         if self.lookahead_dt > 0:
@@ -283,11 +290,12 @@ def trace_for_inference(actor: Actor, robot, humans, humans_mask) -> torch.jit.S
 
 
 @torch.no_grad()
-def prepare_batch(td, *encoders, include_next: bool = True):
-    """Add every distinct encoder preprocessing of ``td``'s observation (and of
-    ``("next", ...)`` if present and ``include_next``) under ``("agents", "observation", prep_key)``.
-    Returns ``td`` (modified in place)."""
-    roots = [()]
+def prepare_batch(td, *encoders, include_next: bool = True, include_root: bool = True):
+    """Add every distinct encoder preprocessing of ``td``'s observation (if ``include_root``) and of
+    ``("next", ...)`` (if present and ``include_next``) under ``("agents", "observation", prep_key)``.
+    Returns ``td`` (modified in place). ``include_root=False`` serves a TD3 critic-only step with
+    a lookahead critic, which reads the actor's graphs of the next observation only."""
+    roots = [()] if include_root else []
     if include_next and ("next",) + OBS + ("robot",) in td.keys(include_nested=True):
         roots.append(("next",))
     done = set()

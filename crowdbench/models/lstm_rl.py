@@ -18,9 +18,9 @@ unobserved slots after them; the LSTM runs over the whole padded sequence (stati
 ``h_n`` is read at each row's last observed step. The LSTM is causal, so the later padded steps
 cannot affect it; a row without observed humans gets the LSTM's initial state ``h_0 = 0``.
 ``torch.nn.LSTM`` has no ``torch.vmap`` batching rule, so under ``torch.func`` transforms (TorchRL's
-vmapped critics) the same cell equations run as a Python loop over the ``M`` steps on the module's
-own weights (tested equal to ``nn.LSTM``). ``h_nodes`` is ``robot_h`` with a node axis of size 1;
-``last_gates`` is ``None``.
+vmapped critics) the same cell equations run as a Python loop on the module's own weights (tested
+equal to ``nn.LSTM``), over the steps up to the batch's largest number of observed humans.
+``h_nodes`` is ``robot_h`` with a node axis of size 1; ``last_gates`` is ``None``.
 """
 
 from __future__ import annotations
@@ -31,6 +31,7 @@ from torch import nn
 from crowdbench.models.base import is_plain
 from crowdbench.models.graph import _gather_rows, flatten_obs, unpack_obs
 from crowdbench.models.sarl import relu_mlp
+from crowdbench.models.vmap_once import batch_max
 
 HUMAN_IN = 5  # [px - px_r, py - py_r, vx, vy, d]
 
@@ -56,17 +57,20 @@ class LSTMRLEncoder(nn.Module):
         self.fc = relu_mlp(6 + hidden_size, dim, hidden, last_relu=True)
         self.last_gates = None
 
-    def run_lstm(self, seq: torch.Tensor) -> torch.Tensor:
-        """``[B, M, 5] -> [B, M, H]``: the LSTM's hidden state after every step."""
+    def run_lstm(self, seq: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
+        """``[B, M, 5] -> [B, T, H]``: the LSTM's hidden state after each of the first ``T`` steps
+        (``T = M`` plain; ``T >= max(n)`` under ``torch.func``, enough for ``h_n``)."""
         w = (self.lstm.weight_ih_l0, self.lstm.weight_hh_l0, self.lstm.bias_ih_l0, self.lstm.bias_hh_l0)
         if all(is_plain(t) for t in (seq, *w)):
             return self.lstm(seq)[0]
         w_ih, w_hh, b_ih, b_hh = w  # the cell equations of nn.LSTM (gates i, f, g, o), step by step
-        x = seq @ w_ih.T + (b_ih + b_hh)
+        # unbind, not x[:, t]: the backward of M selects allocates and adds M full-size zero gradients
+        xs = (seq @ w_ih.T + (b_ih + b_hh)).unbind(1)
         h = c = seq.new_zeros(seq.shape[0], self.hidden_size)
         out = []
-        for t in range(seq.shape[1]):
-            i, f, g, o = (x[:, t] + h @ w_hh.T).chunk(4, -1)
+        # steps after every row's last observed human cannot reach h_n (the LSTM is causal)
+        for t in range(batch_max(n)):
+            i, f, g, o = (xs[t] + h @ w_hh.T).chunk(4, -1)
             c = torch.sigmoid(f) * c + torch.sigmoid(i) * torch.tanh(g)
             h = torch.sigmoid(o) * torch.tanh(c)
             out.append(h)
@@ -74,10 +78,10 @@ class LSTMRLEncoder(nn.Module):
 
     def encode(self, robot: torch.Tensor, seq: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
         """``robot [B, 6]``, ``seq [B, M, 5]``, ``n [B]`` -> ``robot_h [B, D]``."""
-        if seq.shape[1] == 0:
+        out = self.run_lstm(seq, n) if seq.shape[1] else seq.new_zeros(seq.shape[0], 0, self.hidden_size)
+        if out.shape[1] == 0:
             h_n = robot.new_zeros(robot.shape[0], self.hidden_size)
         else:
-            out = self.run_lstm(seq)
             last = _gather_rows(out, (n - 1).clamp_min(0).unsqueeze(-1)).squeeze(1)
             h_n = torch.where((n > 0).unsqueeze(-1), last, 0.0)
         return self.fc(torch.cat((robot, h_n), -1))
