@@ -1,4 +1,4 @@
-"""Where the time of one TD3 update goes: ``Learner.update`` as ``crowdbench run`` makes it.
+"""Where the time of one TD3 update goes: ``OffPolicyAlgorithm.update`` as ``crowdbench run`` makes it.
 
     python benchmarks/profile_update.py                                  # timings, every encoder
     python benchmarks/profile_update.py --encoders gatedgcn,sarl --profile
@@ -12,8 +12,8 @@ of them; the figure is the median over rounds of each round's median. ``--profil
 encoder, the top operators of ``torch.profiler`` (self CPU time) and the top Python functions of
 ``cProfile`` over one critic-only + one full step.
 
-The script only uses ``Learner`` and the config, so it also times an older checkout:
-``PYTHONPATH=/path/to/old python benchmarks/profile_update.py`` (the "before" figures).
+The "before" figures below were taken with the version of this script that drove ``Learner`` (before the algorithm components)
+(git history), on the revision before the changes.
 
 Measured (1 thread, 2-core machine shared with other jobs, load average 0.7-1.0, medians over
 2-3 runs; ms per update, before -> after; "compact" is the opt-in ``make_encoder(compact=True)``):
@@ -53,10 +53,9 @@ def make_learner(enc: str, overrides: list[str], frames: int, pseudo_vmap: bool 
     from omegaconf import open_dict
     from torchrl.collectors import Collector
 
-    from crowdbench.algos.builders import exploration_policy
-    from crowdbench.algos.learner import Learner
     from crowdbench.algos.multiagent import agent_transitions
-    from crowdbench.algos.train import KEEP, make_buffer
+    from crowdbench.algos.offpolicy import KEEP
+    from crowdbench.algos.registry import component
     from crowdbench.cli import compose
     from crowdbench.envs.factory import make_env
 
@@ -69,12 +68,11 @@ def make_learner(enc: str, overrides: list[str], frames: int, pseudo_vmap: bool 
                 cfg.encoder.compact = True
     torch.manual_seed(0)
     env = make_env(cfg)
-    learner = Learner(cfg)
+    learner = component(cfg.algo.name)(cfg, env.n_agents)
     if pseudo_vmap:  # what TD3Loss(deactivate_vmap=True) would do: the critic copies one after the other
         learner.loss.deactivate_vmap = True
         learner.loss._make_vmap()
-    rb = make_buffer(cfg.algo, torch.Generator().manual_seed(0))
-    policy = exploration_policy("td3", learner.actor, env.n_agents, cfg.env.v_max, 0.3)
+    rb, policy = learner.rb, learner.collection_policy()
     for batch in Collector(env, policy, frames_per_batch=min(1024, frames), total_frames=frames,
                            auto_register_policy_transforms=False):
         rb.extend(agent_transitions(batch, KEEP))
@@ -102,10 +100,10 @@ def time_round(step, reps: int) -> float:
 
 
 def phases(learner, step, reps: int) -> dict[str, float]:
-    """ms per update spent in each phase of ``Learner.update`` (wrapped from outside, so that the
+    """ms per update spent in each phase of ``OffPolicyAlgorithm.update`` (wrapped from outside, so that the
     learner runs unchanged): graph preparation, the critic term's forward, backward and Adam step,
     the actor term's, the Polyak update; "other" is the rest (sampling, priorities, Python)."""
-    import crowdbench.algos.learner as lmod
+    import crowdbench.algos.offpolicy as lmod
 
     acc: dict[str, float] = {}
     current = ["critic"]
@@ -182,7 +180,7 @@ def main(argv=None):
                     "(models/compact.py)")
     ap.add_argument("--profile", action="store_true")
     ap.add_argument("--pseudo-vmap", action="store_true", help="TD3Loss's deactivate_vmap=True (an option for "
-                    "algos/builders.py, not the shipped recipe): the two critics as two plain calls")
+                    "algos/td3.py, not the shipped recipe): the two critics as two plain calls")
     ap.add_argument("--top", type=int, default=25)
     args = ap.parse_args(argv)
     from crowdbench.models.perf import tune_allocator

@@ -134,21 +134,18 @@ def test_batch_max_reads_every_vmapped_copy():
 def test_lookahead_critic_term_needs_no_root_graphs(real_obs, name):
     """``prepare_batch(include_root=False)``: a TD3 critic-only step with a lookahead critic reads the
     actor's preprocessing of the next observation only; its loss and priorities are bit for bit those
-    of a fully prepared batch (what learner_update.patch relies on)."""
-    from omegaconf import OmegaConf
+    of a fully prepared batch (what OffPolicyAlgorithm.update relies on)."""
     from tensordict import TensorDict
-    from torchrl.objectives import SoftUpdate
 
-    from crowdbench.algos.builders import build_actor, build_critic, build_loss
+    from crowdbench.algos.td3 import TD3
+    from crowdbench.cli import compose
     from crowdbench.envs.policy import OBS
     from crowdbench.models.heads import prepare_batch
 
-    a = OmegaConf.load("crowdbench/conf/algo/td3.yaml")
     torch.manual_seed(3)
-    actor = build_actor("td3", {"name": name, **SMALL[name]}, 1.0)
-    critic = build_critic({"name": name, **SMALL[name]}, lookahead_dt=0.25)
-    loss = build_loss("td3", actor, critic, 1, 1.0, a, prepared=True)
-    SoftUpdate(loss, tau=a.tau)  # as the learner: target parameters with an updater
+    small = [f"encoder.{k}={v}".replace(" ", "") for k, v in SMALL[name].items()]
+    td3 = TD3(compose([f"encoder={name}", *small, "algo.critic_lookahead=0.25"]), 1)
+    actor, loss = td3.actor, td3.loss
     robot, humans, mask, action = real_obs
     obs = {"robot": robot, "humans": humans, "humans_mask": mask}
     nxt = {k: v.roll(1, 0) for k, v in obs.items()}

@@ -157,6 +157,8 @@ class OffPolicyAlgorithm(Algorithm):
         # graphs built once per sampled batch, for the networks that read them (a lookahead critic builds its own)
         self.encoders = ((self.actor.module.encoder,) + (() if horizon > 0 else (critic.module.encoder,))
                          if self.prepared else ())
+        # a lookahead critic reads no prepared graph: a critic-only step needs the next observation's only
+        self.root_every_step = horizon == 0
         self.target_updater = SoftUpdate(loss, tau=a.tau)
         # fused Adam: one kernel for all parameters (~5x cheaper steps for many small tensors on CPU)
         self.opt_actor = torch.optim.Adam(params_of(loss.actor_network_params), lr=a.lr_actor, fused=True)
@@ -217,8 +219,9 @@ class OffPolicyAlgorithm(Algorithm):
     def update(self, sample, n: int) -> dict[str, float]:
         """Gradient step ``n`` on a sampled batch: critics always; actor (and temperature) and targets
         every ``policy_delay`` steps. Writes the new priorities to ``sample["td_error"]``."""
+        actor_step = n % self.policy_delay == 0
         if self.prepared:
-            prepare_batch(sample, *self.encoders)
+            prepare_batch(sample, *self.encoders, include_root=actor_step or self.root_every_step)
         if self.a.per_weights:  # the buffer's [n] weights, shaped like the per-agent losses [n, 1]
             sample.set("priority_weight", sample["priority_weight"].reshape(sample.batch_size[0], 1))
         q_loss, meta = self.critic_loss(sample)
@@ -227,7 +230,7 @@ class OffPolicyAlgorithm(Algorithm):
         self.opt_critic.step()
         sample.set("td_error", per_transition(meta["td_error"].detach(), sample.batch_size[0]))
         out = {"loss_critic": q_loss.item()}
-        if n % self.policy_delay == 0:
+        if actor_step:
             pi_loss, pi_meta = self.actor_loss(sample)
             self.opt_actor.zero_grad()
             pi_loss.backward()
