@@ -1,5 +1,7 @@
 """The imitation warm start (train.pretrain=orca): returns-to-go, behaviour cloning, critic regression, the CLI."""
 
+import math
+
 import pytest
 import torch
 from torchrl.envs.utils import ExplorationType, set_exploration_type
@@ -14,7 +16,8 @@ from crowdbench.models.heads import STATE_ACTION_VALUE, prepare_batch
 
 TINY = ["env.batch=8", "train.frames_per_batch=64", "algo.warmup=128", "algo.batch_size=16", "train.utd=0.125",
         "train.checkpoint_every=128"]
-SMALL = {"td3": ["algo=td3", "encoder=mlp", "encoder.dim=16", "encoder.hidden=[32]"],
+MLP = ["encoder=mlp", "encoder.dim=16", "encoder.hidden=[32]"]
+SMALL = {"td3": ["algo=td3", *MLP], "ddpg": ["algo=ddpg", "algo.n_steps=3", *MLP],
          "sac": ["algo=sac", "encoder=gatedgcn", "encoder.dim=16"]}
 
 
@@ -87,13 +90,13 @@ def critic_mse(algo, demos) -> float:
         td = prepare_batch(td.copy(), *algo.encoders, include_next=False)
     params, net = algo.critic_params(), algo.critic_network()
     errs = []
-    for p in params.unbind(0):
+    for p in params.unbind(0) if params.batch_dims else [params]:  # twin critics stacked; DDPG's one
         with p.to_module(net):
             errs.append(((net(td.copy())[STATE_ACTION_VALUE] - td[RETURN]) ** 2).mean().item())
     return sum(errs) / len(errs)
 
 
-@pytest.mark.parametrize("algo, frames, epochs", [("td3", 1600, 8), ("sac", 1200, 4)])
+@pytest.mark.parametrize("algo, frames, epochs", [("td3", 1600, 8), ("ddpg", 1200, 6), ("sac", 1200, 4)])
 def test_warm_start_imitates_orca_on_unseen_episodes(algo, frames, epochs):
     cfg, env, learner = make(algo, f"train.pretrain_epochs={epochs}", "train.pretrain_batch=128",
                              "train.pretrain_lr=3e-3")
@@ -114,6 +117,10 @@ def test_warm_start_imitates_orca_on_unseen_episodes(algo, frames, epochs):
         if target is not None:
             assert (target.data == getattr(loss, name).data).all(), name
     assert len(learner.rb) == len(demos)
+    sample = learner.rb.sample()  # the demonstrations are replay transitions (n-step ones for DDPG here)
+    if algo == "ddpg":
+        assert 1 <= sample[GROUP, "steps_to_next_obs"].min() and sample[GROUP, "steps_to_next_obs"].max() <= 3
+    assert math.isfinite(learner.update(sample, 0)["loss_critic"])
     assert learner.random_frames(False, False, 0) == 0
 
 

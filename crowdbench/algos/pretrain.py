@@ -5,7 +5,8 @@ env of ``train.py``, with its reward shaping) and returns per-agent transitions 
 return-to-go of each agent episode. An algorithm's ``warm_start`` then calls :func:`imitate`:
 the actor is fitted to ORCA's actions (:func:`behaviour_clone`) and each critic to the returns
 (:func:`regress_values`), on the demonstrated episodes minus a held-out share on which the
-imitation is measured. Off-policy algorithms also put the demonstrations into their replay buffer.
+imitation is measured. Off-policy algorithms also put the demonstrations into their replay buffer;
+an on-policy one passes its state-value critic (``V(s) -> return``) to :func:`imitate` the same way.
 
 Why the mode's squared error for a TanhNormal actor and not the demonstrations' negative
 log-likelihood: ORCA is deterministic, so the NLL is unbounded (it is minimised by a vanishing
@@ -195,7 +196,7 @@ def regress_values(module, params, fit: TensorDictBase, held: TensorDictBase, ou
     before = _value_mse(module, params, held, out_key, prepare)
     for idx in minibatches(len(fit), batch, epochs, generator):
         mb = fit[idx]
-        # the mean over the stack: every critic gets its own full-size gradient
+        # summed over the stack: each critic descends its own mean squared error, at full size
         loss = ((_values(module, params, mb, out_key, prepare) - mb[RETURN]) ** 2).flatten(1).mean(1).sum()
         opt.zero_grad()
         loss.backward()
