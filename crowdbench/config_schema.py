@@ -263,6 +263,13 @@ class TrainConfig:
     logger: str = bounded("csv", choices=("csv", "tensorboard"))
     progress_reward: float = 0.1
     human_dropout: float = bounded(0.0, ge=0, le=1)  # a probability
+    # imitation warm start before RL (crowdbench/algos/pretrain.py); a resumed run never repeats it
+    pretrain: str | None = bounded(None, choices=("orca",))
+    pretrain_frames: int = bounded(20000, ge=1)  # env steps of demonstrations
+    pretrain_epochs: int = bounded(3, ge=0)  # passes over the demonstrations, actor and each critic
+    pretrain_batch: int = bounded(256, ge=1)
+    pretrain_lr: float = bounded(1.0e-3, gt=0)
+    pretrain_heldout: float = bounded(0.1, ge=0, lt=1)  # share of demonstrated episodes kept for measuring
 
 
 @dataclass

@@ -23,6 +23,7 @@ from crowdbench.algos.actors import leaf_action_spec
 from crowdbench.algos.base import Algorithm
 from crowdbench.algos.multiagent import agent_transitions
 from crowdbench.algos.nstep import STEPS, n_step
+from crowdbench.algos.pretrain import imitate, sync_targets
 from crowdbench.algos.resume import compact_storage, remove_stale_buffers, restore_buffer, save_buffer
 from crowdbench.envs.policy import ACTION, GROUP
 from crowdbench.models import make_encoder
@@ -175,6 +176,10 @@ class OffPolicyAlgorithm(Algorithm):
     def critic_params(self):
         return self.loss.qvalue_network_params
 
+    def critic_network(self):
+        """The loss's parameter-free critic that :meth:`critic_params` run through (DDPG: its value network)."""
+        return self.loss.qvalue_network if hasattr(self.loss, "qvalue_network") else self.loss.value_network
+
     def critic_loss(self, sample):
         return self.loss.value_loss(sample)
 
@@ -193,12 +198,18 @@ class OffPolicyAlgorithm(Algorithm):
     def random_frames(self, resumed: bool, restored: bool, frames: int) -> int:
         # a resumed run continues the warm-up where it stopped; without its saved buffer it refills one
         # with the policy's actions (no updates until it holds algo.warmup transitions)
+        if self.cfg.train.get("pretrain"):
+            # the buffer starts with the demonstrations; random actions would then only teach the critic
+            # what the imitating actor never does, and updates on them start at once: act with the policy
+            return 0
         if not resumed:
             return self.a.warmup
         return max(0, self.a.warmup - frames) if restored else 0
 
     def expected_updates(self, frames: int) -> int:
-        return max(0, int(self.cfg.train.utd * (frames - self.a.warmup)))
+        t = self.cfg.train
+        waiting = max(0, self.a.warmup - t.pretrain_frames) if t.get("pretrain") else self.a.warmup
+        return max(0, int(t.utd * (frames - waiting)))
 
     # ---- learning
     def learn(self, batch) -> dict[str, float]:
@@ -214,6 +225,16 @@ class OffPolicyAlgorithm(Algorithm):
                 self.updates += 1
                 if a.replay == "prioritized":
                     self.rb.update_tensordict_priority(sample)
+        return logs
+
+    def warm_start(self, demos) -> dict[str, float]:
+        """Behaviour cloning of the actor and ``Q(s, a_demo) -> return`` for each critic
+        (``crowdbench/algos/pretrain.py``), targets synced, the demonstrations into the replay buffer."""
+        prepare = (lambda td: prepare_batch(td, *self.encoders, include_next=False)) if self.prepared else None
+        critic = (self.critic_network(), self.critic_params(), STATE_ACTION_VALUE)
+        logs = imitate(self.cfg, self.actor, self.actor_kind, demos, [critic], prepare)
+        sync_targets(self.loss)
+        self.rb.extend(demos.select(*KEEP, *[STEPS] * (self.a.n_steps > 1)))
         return logs
 
     def update(self, sample, n: int) -> dict[str, float]:

@@ -19,6 +19,7 @@ from torchrl.envs import InitTracker, RewardSum
 from torchrl.record.loggers.csv import CSVLogger
 from tqdm import tqdm
 
+from crowdbench.algos.base import Algorithm
 from crowdbench.algos.checkpoint import FORMAT, CheckpointError, load_checkpoint
 from crowdbench.algos.multiagent import finished_episodes
 from crowdbench.algos.registry import component
@@ -110,6 +111,29 @@ def load_resume_state(cfg: DictConfig, ckpt_path: Path, fields: tuple[str, ...])
     return state
 
 
+def warm_start(cfg: DictConfig, env, algo: Algorithm, logger, write=None) -> dict[str, float]:
+    """``train.pretrain``: demonstrations on the training env, then the algorithm's imitation warm start;
+    its scalars are logged at frame 0 (``crowdbench/algos/pretrain.py``)."""
+    from crowdbench.algos.pretrain import collect_demonstrations
+
+    t = cfg.train
+    if type(algo).warm_start is Algorithm.warm_start:
+        raise ValueError(f"train.pretrain={t.pretrain}: algo={algo.name} has no imitation warm start")
+    start = time.perf_counter()
+    demos = collect_demonstrations(cfg, env, t.pretrain_frames)
+    collected = time.perf_counter()
+    logs = algo.warm_start(demos)
+    logs["pretrain_collect_s"] = collected - start
+    logs["pretrain_fit_s"] = time.perf_counter() - collected
+    for k, v in logs.items():
+        logger.log_scalar(k, v, step=0)
+    if write is not None:
+        took = logs["pretrain_collect_s"] + logs["pretrain_fit_s"]
+        write(f"warm start ({t.pretrain}, {len(demos):,} transitions, {took:.0f} s): held-out action MSE "
+              f"{logs['pretrain_heldout_action_mse_before']:.4f} -> {logs['pretrain_heldout_action_mse']:.4f}")
+    return logs
+
+
 def train(cfg: DictConfig, out_dir: Path, resume: bool = False, progress: bool = True, probe=None) -> dict:
     """Train per ``cfg`` into ``out_dir`` (``checkpoint.pt``, ``replay-*/``, ``logs/``); return final stats.
 
@@ -158,6 +182,8 @@ def _train(cfg: DictConfig, out_dir: Path, resume: bool, progress: bool, probe) 
         truncate_log(out_dir / "logs", frames)
 
     logger = make_logger(t.logger, out_dir)
+    if state is None and t.get("pretrain"):
+        warm_start(cfg, env, algo, logger, print if progress else None)
     remaining = t.total_frames - frames
     if remaining <= 0:
         return {"frames": frames, "updates": algo.updates}

@@ -1,0 +1,151 @@
+"""The imitation warm start (train.pretrain=orca): returns-to-go, behaviour cloning, critic regression, the CLI."""
+
+import math
+
+import pytest
+import torch
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from crowdbench.algos.checkpoint import load_checkpoint, policy_from_checkpoint
+from crowdbench.algos.pretrain import COMPLETE, EPISODE, RETURN, collect_demonstrations, returns_to_go
+from crowdbench.algos.registry import component
+from crowdbench.cli import compose, main
+from crowdbench.envs.factory import make_env
+from crowdbench.envs.policy import ACTION, GROUP, OBS
+from crowdbench.models.heads import STATE_ACTION_VALUE, prepare_batch
+
+TINY = ["env.batch=8", "train.frames_per_batch=64", "algo.warmup=128", "algo.batch_size=16", "train.utd=0.125",
+        "train.checkpoint_every=128"]
+MLP = ["encoder=mlp", "encoder.dim=16", "encoder.hidden=[32]"]
+SMALL = {"td3": ["algo=td3", *MLP], "ddpg": ["algo=ddpg", "algo.n_steps=3", *MLP],
+         "sac": ["algo=sac", "encoder=gatedgcn", "encoder.dim=16"]}
+
+
+def loop_returns(reward, done, gamma):
+    """The return-to-go and "episode ended in the data" flag of one sequence, the textbook way."""
+    g, ended, ret, complete = 0.0, False, [], []
+    for r, d in zip(reversed(reward), reversed(done), strict=True):
+        g = r if d else r + gamma * g
+        ended = ended or d
+        ret.append(g)
+        complete.append(ended)
+    return ret[::-1], complete[::-1]
+
+
+def test_returns_to_go_match_a_python_loop():
+    gen = torch.Generator().manual_seed(3)
+    B, T, A, gamma = 3, 9, 2, 0.9
+    reward = torch.randn(B, T, A, 1, generator=gen)
+    done = torch.rand(B, T, A, 1, generator=gen) < 0.3
+    done[0, :, 0] = False  # one sequence with no episode end: its return has no tail
+    ret, complete = returns_to_go(reward, done, gamma)
+    for b in range(B):
+        for a in range(A):
+            want, ended = loop_returns(reward[b, :, a, 0].tolist(), done[b, :, a, 0].tolist(), gamma)
+            assert ret[b, :, a, 0].tolist() == pytest.approx(want, abs=1e-5)
+            assert complete[b, :, a, 0].tolist() == ended
+    assert not complete[0, :, 0].any()
+
+
+def make(algo: str, *extra):
+    cfg = compose([*SMALL[algo], "train.pretrain=orca", "env.batch=8", *extra])
+    torch.manual_seed(0)
+    env = make_env(cfg, progress_reward=cfg.train.progress_reward)
+    return cfg, env, component(algo)(cfg, env.n_agents)
+
+
+def test_demonstrations_are_orca_with_per_episode_returns():
+    """Every complete agent episode's stored return-to-go is its discounted reward sum (from its own rows)."""
+    cfg, env, _ = make("td3")
+    demos = collect_demonstrations(cfg, env, 400)
+    assert len(demos) == 400  # one robot: no frozen agent dropped
+    from crowdbench.algos.pretrain import expert_policy
+
+    assert torch.allclose(expert_policy(cfg).act(demos.select(OBS)), demos[ACTION])
+    ids, gamma = demos[EPISODE].reshape(-1), cfg.algo.gamma
+    assert demos[COMPLETE].any() and not demos[COMPLETE].all()  # 50 steps per env: some tails are cut
+    for i in ids.unique():
+        ep = demos[ids == i]
+        reward = ep["next", GROUP, "reward"].reshape(-1).tolist()
+        done = ep["next", GROUP, "done"].reshape(-1).tolist()
+        assert sum(done) <= 1 and (not done[-1] or done.index(True) == len(done) - 1)
+        want, ended = loop_returns(reward, done, gamma)
+        assert ep[RETURN].reshape(-1).tolist() == pytest.approx(want, abs=1e-4)
+        assert ep[COMPLETE].reshape(-1).tolist() == ended
+
+
+@torch.no_grad()
+def acting_mse(actor, demos) -> float:
+    """The error of the action an evaluation takes (deterministic exploration) to ORCA's."""
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        action = actor(demos.select(OBS).copy())[ACTION]
+    return ((action - demos[ACTION]) ** 2).mean().item()
+
+
+@torch.no_grad()
+def critic_mse(algo, demos) -> float:
+    """Mean over the critics of the squared error of Q(s, a_demo) to the returns (complete episodes)."""
+    td = demos[demos[COMPLETE].reshape(-1)]
+    if algo.prepared:
+        td = prepare_batch(td.copy(), *algo.encoders, include_next=False)
+    params, net = algo.critic_params(), algo.critic_network()
+    errs = []
+    for p in params.unbind(0) if params.batch_dims else [params]:  # twin critics stacked; DDPG's one
+        with p.to_module(net):
+            errs.append(((net(td.copy())[STATE_ACTION_VALUE] - td[RETURN]) ** 2).mean().item())
+    return sum(errs) / len(errs)
+
+
+@pytest.mark.parametrize("algo, frames, epochs", [("td3", 1600, 8), ("ddpg", 1200, 6), ("sac", 1200, 4)])
+def test_warm_start_imitates_orca_on_unseen_episodes(algo, frames, epochs):
+    cfg, env, learner = make(algo, f"train.pretrain_epochs={epochs}", "train.pretrain_batch=128",
+                             "train.pretrain_lr=3e-3")
+    demos = collect_demonstrations(cfg, env, frames)
+    # episodes of another seed: none of them is among the demonstrations
+    other_cfg = compose([*SMALL[algo], "train.pretrain=orca", "env.batch=8", "seed=1"])
+    unseen = collect_demonstrations(other_cfg, make_env(other_cfg, progress_reward=0.1), 800)
+    before, q_before = acting_mse(learner.actor, unseen), critic_mse(learner, unseen)
+    logs = learner.warm_start(demos)
+    after, q_after = acting_mse(learner.actor, unseen), critic_mse(learner, unseen)
+    assert after < 0.5 * before, (before, after)
+    assert q_after < 0.7 * q_before, (q_before, q_after)
+    assert logs["pretrain_heldout_action_mse"] < 0.5 * logs["pretrain_heldout_action_mse_before"]
+    assert logs["pretrain_heldout_critic_mse"] < logs["pretrain_heldout_critic_mse_before"]
+    loss = learner.loss  # the targets start from the warm-started networks
+    for name in ("actor_network_params", "qvalue_network_params"):
+        target = getattr(loss, f"target_{name}", None)
+        if target is not None:
+            assert (target.data == getattr(loss, name).data).all(), name
+    assert len(learner.rb) == len(demos)
+    sample = learner.rb.sample()  # the demonstrations are replay transitions (n-step ones for DDPG here)
+    if algo == "ddpg":
+        assert 1 <= sample[GROUP, "steps_to_next_obs"].min() and sample[GROUP, "steps_to_next_obs"].max() <= 3
+    assert math.isfinite(learner.update(sample, 0)["loss_critic"])
+    assert learner.random_frames(False, False, 0) == 0
+
+
+def read_log(run, name):
+    path = run / "logs" / "scalars" / f"{name}.csv"
+    return [(int(float(a)), float(b)) for a, b in (line.split(",") for line in path.read_text().splitlines())]
+
+
+def test_cli_run_with_warm_start_then_resume(tmp_path):
+    args = ["run", *SMALL["td3"], *TINY, "train.pretrain=orca", "train.pretrain_frames=256", "train.pretrain_epochs=1",
+            "eval.episodes=2", "eval.scenes=[hotel]", f"out={tmp_path}"]
+    assert main([*args, "train.total_frames=128"]) == 0
+    state = load_checkpoint(tmp_path / "checkpoint.pt")
+    # no random warm-up: the 256 demonstrations already fill algo.warmup, updates start with the first batch
+    assert state["frames"] == 128 and state["updates"] == 2 * 8
+    assert policy_from_checkpoint(tmp_path / "checkpoint.pt") is not None
+    [(step, mse)] = read_log(tmp_path, "pretrain_heldout_action_mse")
+    assert step == 0 and mse < read_log(tmp_path, "pretrain_heldout_action_mse_before")[0][1]
+    assert main([*args, "train.total_frames=256", "resume=true"]) == 0
+    assert load_checkpoint(tmp_path / "checkpoint.pt")["frames"] == 256
+    assert len(read_log(tmp_path, "pretrain_heldout_action_mse")) == 1  # a resumed run never pretrains again
+
+
+def test_bad_pretrain_is_a_one_line_error(tmp_path, capsys):
+    assert main(["run", "train.pretrain=foo", f"out={tmp_path / 'run'}"]) == 2
+    err = capsys.readouterr().err
+    assert "train.pretrain: must be one of orca (got 'foo')" in err and err.count("\n") == 1
+    assert not (tmp_path / "run").exists()
