@@ -149,3 +149,31 @@ def test_bad_pretrain_is_a_one_line_error(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "train.pretrain: must be one of orca (got 'foo')" in err and err.count("\n") == 1
     assert not (tmp_path / "run").exists()
+
+
+def test_ppo_warm_start_clones_the_actor_and_fits_v(tmp_path):
+    """PPO: the deterministic action imitates ORCA on another seed's episodes and V(s) moves to the returns."""
+    from crowdbench.algos.ppo import VALUE
+
+    cfg = compose(["algo=ppo", *MLP, "train.pretrain=orca", "env.batch=8", "train.pretrain_epochs=8",
+                   "train.pretrain_batch=128", "train.pretrain_lr=3e-3"])
+    env = make_env(cfg, progress_reward=0.1)
+    torch.manual_seed(0)
+    ppo = component("ppo")(cfg, env.n_agents)
+    demos = collect_demonstrations(cfg, env, 1600)
+    other = compose(["algo=ppo", *MLP, "train.pretrain=orca", "env.batch=8", "seed=1"])
+    unseen = collect_demonstrations(other, make_env(other, progress_reward=0.1), 800)
+    complete = unseen[unseen[COMPLETE].reshape(-1)]
+
+    @torch.no_grad()
+    def v_mse():
+        return ((ppo.loss.critic_network(complete.copy())[VALUE] - complete[RETURN]) ** 2).mean().item()
+
+    before, v_before = acting_mse(ppo.actor, unseen), v_mse()
+    logs = ppo.warm_start(demos)
+    assert acting_mse(ppo.actor, unseen) < 0.5 * before and v_mse() < 0.7 * v_before
+    assert logs["pretrain_heldout_critic_mse"] < logs["pretrain_heldout_critic_mse_before"]
+    args = ["run", "algo=ppo", *MLP, "env.batch=8", "train.frames_per_batch=64", "algo.minibatch_size=64",
+            "algo.epochs=1", "train.pretrain=orca", "train.pretrain_frames=256", "train.pretrain_epochs=1",
+            "train.total_frames=128", "eval.episodes=2", "eval.scenes=[hotel]", f"out={tmp_path}"]
+    assert main(args) == 0 and load_checkpoint(tmp_path / "checkpoint.pt")["updates"] == 2

@@ -124,6 +124,14 @@ class PPO(Algorithm):
         logs["value_target"] = float(flat[VALUE_TARGET].mean())
         return logs
 
+    def warm_start(self, demos) -> dict[str, float]:
+        """``train.pretrain``: the actor's deterministic action cloned to the demonstrations', ``V(s)``
+        regressed to their returns (crowdbench/algos/pretrain.py); on-policy, so nothing is stored."""
+        from crowdbench.algos.pretrain import imitate
+
+        critic = (self.loss.critic_network, self.loss.critic_network_params, VALUE)
+        return imitate(self.cfg, self.actor, self.actor_kind, demos, [critic])
+
     def state_dict(self) -> dict:
         return {"actor": self.actor.state_dict(), "loss": self.loss.state_dict(), "opt": self.opt.state_dict(),
                 "replay_rng": self.generator.get_state()}
