@@ -10,7 +10,7 @@ import torch
 import torch.nn.functional as F
 import yaml
 from tensordict import TensorDict
-from worlds import students_obs
+from worlds import SMALL_ENCODERS, students_obs
 
 from crowdbench.envs.policy import ACTION, OBS
 from crowdbench.models import ENCODERS, make_encoder
@@ -25,10 +25,7 @@ from crowdbench.models.heads import (
 )
 
 CONFIGS = Path(__file__).resolve().parents[1] / "crowdbench" / "conf" / "encoder"
-SMALL = {"gatedgcn": {"dim": 16}, "gcn": {"dim": 16}, "mlp": {"dim": 16, "hidden": [32]},
-         "sarl": {"dim": 16, "embed": [16, 16], "interact": [16], "attention": [16], "hidden": [16]},
-         "lstm_rl": {"dim": 16, "hidden_size": 16, "hidden": [16]}, "rgl": {"dim": 16, "embed": [16]},
-         "gat": {"dim": 16}, "dsrnn": {"dim": 16, "embed": 16, "attn_dim": 8}}
+SMALL = SMALL_ENCODERS
 
 
 # --------------------------------------------------------------------------- fixtures

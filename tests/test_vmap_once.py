@@ -6,17 +6,14 @@ from __future__ import annotations
 import pytest
 import torch
 from torch._C import _functorch as _ft
-from worlds import students_obs
+from worlds import SMALL_ENCODERS, students_obs
 
 from crowdbench.models import ENCODERS, make_encoder
 from crowdbench.models.heads import Critic
 from crowdbench.models.lstm_rl import sorted_sequence
 from crowdbench.models.vmap_once import batch_max, once
 
-SMALL = {"gatedgcn": {"dim": 16}, "gcn": {"dim": 16}, "mlp": {"dim": 16, "hidden": [32]},
-         "sarl": {"dim": 16, "embed": [16, 16], "interact": [16], "attention": [16], "hidden": [16]},
-         "lstm_rl": {"dim": 16, "hidden_size": 16, "hidden": [16]}, "rgl": {"dim": 16, "embed": [16]},
-         "gat": {"dim": 16}, "dsrnn": {"dim": 16, "embed": 16, "attn_dim": 8}}
+SMALL = SMALL_ENCODERS
 
 
 @pytest.fixture(scope="module")

@@ -44,3 +44,10 @@ def students_obs(batch: int, steps: int) -> dict:
     for _ in range(steps):
         sim.step(torch.tensor([1.0, 0.0]).expand(batch, 1, 2))
     return sim.observe()
+
+
+# every encoder at a test's size (D = 16)
+SMALL_ENCODERS = {"gatedgcn": {"dim": 16}, "gcn": {"dim": 16}, "mlp": {"dim": 16, "hidden": [32]},
+                  "sarl": {"dim": 16, "embed": [16, 16], "interact": [16], "attention": [16], "hidden": [16]},
+                  "lstm_rl": {"dim": 16, "hidden_size": 16, "hidden": [16]}, "rgl": {"dim": 16, "embed": [16]},
+                  "gat": {"dim": 16}, "dsrnn": {"dim": 16, "embed": 16, "attn_dim": 8}}
