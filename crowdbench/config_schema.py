@@ -270,6 +270,10 @@ class TrainConfig:
     pretrain_batch: int = bounded(256, ge=1)
     pretrain_lr: float = bounded(1.0e-3, gt=0)
     pretrain_heldout: float = bounded(0.1, ge=0, lt=1)  # share of demonstrated episodes kept for measuring
+    # off-policy: weight of a behaviour-cloning term on demonstrations in the actor loss (0 = none), decaying
+    # linearly to 0 over pretrain_bc_updates gradient updates (0 = constant)
+    pretrain_bc_weight: float = bounded(0.0, ge=0)
+    pretrain_bc_updates: int = bounded(20000, ge=0)
 
 
 @dataclass

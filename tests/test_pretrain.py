@@ -177,3 +177,41 @@ def test_ppo_warm_start_clones_the_actor_and_fits_v(tmp_path):
             "algo.epochs=1", "train.pretrain=orca", "train.pretrain_frames=256", "train.pretrain_epochs=1",
             "train.total_frames=128", "eval.episodes=2", "eval.scenes=[hotel]", f"out={tmp_path}"]
     assert main(args) == 0 and load_checkpoint(tmp_path / "checkpoint.pt")["updates"] == 2
+
+
+def test_cloning_term_holds_the_actor_near_orca_and_resumes(tmp_path):
+    """train.pretrain_bc_weight: the actor's error to ORCA after RL updates stays below the run without the
+    term; the term decays as configured, and a resumed run keeps it (demos.pt) and ends where the whole run does."""
+    from crowdbench.algos.pretrain import DemoCloning
+
+    base = [*SMALL["td3"], *TINY, "train.pretrain=orca", "train.pretrain_frames=1024", "train.pretrain_epochs=6",
+            "train.pretrain_lr=3e-3", "algo.warmup=64"]
+    other = compose([*SMALL["td3"], "train.pretrain=orca", "env.batch=8", "seed=1"])
+    unseen = collect_demonstrations(other, make_env(other, progress_reward=0.1), 600)
+    from crowdbench.algos.train import train
+
+    errs = {}
+    for w in (0.0, 20.0):
+        out = tmp_path / f"w{w}"
+        train(compose([*base, f"train.pretrain_bc_weight={w}", "train.total_frames=256"]), out, progress=False)
+        errs[w] = acting_mse(policy_from_checkpoint(out / "checkpoint.pt").actor, unseen)
+    # Adam steps are scale-free, so a larger weight moves the actor about as far: the term's effect is bounded
+    assert errs[20.0] < 0.9 * errs[0.0], errs
+    assert (tmp_path / "w20.0" / "demos.pt").exists() and not (tmp_path / "w0.0" / "demos.pt").exists()
+    cl = DemoCloning(compose([*base, "train.pretrain_bc_weight=2", "train.pretrain_bc_updates=100"]))
+    assert [cl.weight_at(n) for n in (0, 50, 100, 200)] == [2.0, 1.0, 0.0, 0.0]
+    # resume: two halves end with the whole run's actor
+    cfg = [*base, "train.pretrain_bc_weight=20"]
+    train(compose([*cfg, "train.total_frames=128"]), tmp_path / "split", progress=False)
+    train(compose([*cfg, "train.total_frames=256"]), tmp_path / "split", resume=True, progress=False)
+    whole = load_checkpoint(tmp_path / "w20.0" / "checkpoint.pt")
+    split = load_checkpoint(tmp_path / "split" / "checkpoint.pt")
+    assert whole["updates"] == split["updates"]
+    # the term continues after the resume: the same rows, identical up to the checkpoint (episodes in flight at
+    # a checkpoint restart on resume, so later values differ in low-order digits: docs/training.md, Resuming)
+    w_rows, s_rows = read_log(tmp_path / "w20.0", "loss_bc"), read_log(tmp_path / "split", "loss_bc")
+    assert [f for f, _ in w_rows] == [f for f, _ in s_rows] == [64, 128, 192, 256]
+    assert w_rows[:2] == s_rows[:2] and all(abs(a - b) < 1e-2 * a for (_, a), (_, b) in zip(w_rows, s_rows, strict=True))
+    with pytest.raises(ValueError, match="needs train.pretrain=orca"):
+        train(compose([*SMALL["td3"], *TINY, "train.pretrain_bc_weight=1", "train.total_frames=64"]), tmp_path / "x",
+              progress=False)

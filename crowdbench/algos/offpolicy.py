@@ -23,11 +23,18 @@ from crowdbench.algos.actors import leaf_action_spec
 from crowdbench.algos.base import Algorithm
 from crowdbench.algos.multiagent import agent_transitions
 from crowdbench.algos.nstep import STEPS, n_step
-from crowdbench.algos.pretrain import imitate, sync_targets
+from crowdbench.algos.pretrain import DemoCloning, imitate, sync_targets
 from crowdbench.algos.resume import compact_storage, remove_stale_buffers, restore_buffer, save_buffer
 from crowdbench.envs.policy import ACTION, GROUP
 from crowdbench.models import make_encoder
-from crowdbench.models.heads import STATE_ACTION_VALUE, Critic, actor_module, critic_module, prepare_batch
+from crowdbench.models.heads import (
+    OBS_KEYS,
+    STATE_ACTION_VALUE,
+    Critic,
+    actor_module,
+    critic_module,
+    prepare_batch,
+)
 from crowdbench.schema_fields import bounded
 
 # the keys the losses read; everything else the env emits stays out of the replay buffer
@@ -165,6 +172,11 @@ class OffPolicyAlgorithm(Algorithm):
         self.opt_actor = torch.optim.Adam(params_of(loss.actor_network_params), lr=a.lr_actor, fused=True)
         self.opt_critic = torch.optim.Adam(params_of(self.critic_params()), lr=a.lr_critic, fused=True)
         self.rb = make_buffer(a, self.generator)
+        self.cloning = None
+        if cfg.train.get("pretrain_bc_weight", 0) > 0:
+            if not cfg.train.get("pretrain"):
+                raise ValueError("train.pretrain_bc_weight > 0 clones demonstrations: it needs train.pretrain=orca")
+            self.cloning = DemoCloning(cfg)
 
     # ---- what a subclass provides
     def make_loss(self, actor, critic, action_spec):
@@ -235,6 +247,8 @@ class OffPolicyAlgorithm(Algorithm):
         logs = imitate(self.cfg, self.actor, self.actor_kind, demos, [critic], prepare)
         sync_targets(self.loss)
         self.rb.extend(demos.select(*KEEP, *[STEPS] * (self.a.n_steps > 1)))
+        if self.cloning is not None:
+            self.cloning.demos = demos.select(*OBS_KEYS, ACTION)
         return logs
 
     def update(self, sample, n: int) -> dict[str, float]:
@@ -253,6 +267,10 @@ class OffPolicyAlgorithm(Algorithm):
         out = {"loss_critic": q_loss.item()}
         if actor_step:
             pi_loss, pi_meta = self.actor_loss(sample)
+            bc = self.cloning.loss(self.actor, self.actor_kind, n) if self.cloning is not None else None
+            if bc is not None:
+                out["loss_bc"] = bc.item()
+                pi_loss = pi_loss + bc
             self.opt_actor.zero_grad()
             pi_loss.backward()
             self.opt_actor.step()
@@ -265,21 +283,28 @@ class OffPolicyAlgorithm(Algorithm):
     def state_dict(self) -> dict:
         return {"actor": self.actor.state_dict(), "loss": self.loss.state_dict(),
                 "opt_actor": self.opt_actor.state_dict(), "opt_critic": self.opt_critic.state_dict(),
-                "replay_rng": self.generator.get_state()}
+                "replay_rng": self.generator.get_state(),
+                **({"bc_rng": self.cloning.generator.get_state()} if self.cloning is not None else {})}
 
     def load_state_dict(self, state: dict) -> None:
         """From a checkpoint (the ``actor`` entry is part of ``loss`` and not read back)."""
         self.loss.load_state_dict(state["loss"])
         self.opt_actor.load_state_dict(state["opt_actor"])
         self.opt_critic.load_state_dict(state["opt_critic"])
+        if self.cloning is not None and "bc_rng" in state:
+            self.cloning.generator.set_state(state["bc_rng"])
 
     def save_extra(self, out_dir: Path, frames: int) -> dict:
+        if self.cloning is not None:
+            self.cloning.save(out_dir)
         if not self.cfg.train.save_buffer:
             return {"replay": None}
         return {"replay": save_buffer(self.rb, out_dir, frames, self.updates)}
 
     def restore_extra(self, state: dict, ckpt: Path) -> bool:
         restored = False
+        if self.cloning is not None and "bc_rng" in state:  # a run that cloned before it stopped
+            self.cloning.restore(ckpt)
         if self.cfg.train.save_buffer:
             saved = OmegaConf.create(state["config"]["algo"])
             same = all(saved.get(k) == self.a.get(k) for k in REPLAY_KIND)

@@ -228,3 +228,59 @@ def imitate(cfg, actor, kind: str, demos: TensorDictBase, critics=(), prepare=No
     for module, params, out_key in critics:
         logs.update(regress_values(module, params, fit, held, out_key, prepare=prepare, **opts))
     return logs
+
+
+class DemoCloning:
+    """``train.pretrain_bc_weight``: behaviour cloning kept in the actor loss during RL (TD3+BC's idea,
+    Fujimoto & Gu 2021, applied to the demonstrations only): ``w(n) * |pi(s) - a_demo|^2`` on a minibatch
+    of demonstrations at every actor step, with ``w`` decaying linearly to 0 over
+    ``pretrain_bc_updates`` updates. Why: the critics are fitted at the demonstrated actions only, and
+    the actor's first RL steps follow their extrapolated action gradient away from the imitation
+    (docs/training.md); the term holds the actor near ORCA while the critics learn around it.
+
+    The demonstrations are written once next to the checkpoint (``demos.pt``) so that a resumed run
+    keeps the term; its sampling draws from a generator of its own, checkpointed with the run."""
+
+    FILE = "demos.pt"
+
+    def __init__(self, cfg, demos: TensorDictBase | None = None):
+        t = cfg.train
+        self.weight, self.horizon, self.batch = float(t.pretrain_bc_weight), int(t.pretrain_bc_updates), \
+            int(cfg.algo.batch_size)
+        self.demos = demos.select(*OBS_KEYS, ACTION) if demos is not None else None
+        self.generator = torch.Generator().manual_seed(int(cfg.seed) + 1)
+
+    def weight_at(self, updates: int) -> float:
+        if self.horizon == 0:
+            return self.weight
+        return self.weight * max(0.0, 1.0 - updates / self.horizon)
+
+    def loss(self, actor, kind: str, updates: int) -> torch.Tensor | None:
+        w = self.weight_at(updates)
+        if self.demos is None or w <= 0:
+            return None
+        idx = torch.randint(len(self.demos), (self.batch,), generator=self.generator)
+        mb = self.demos[idx]
+        return w * F.mse_loss(policy_action(actor, mb, kind), mb[ACTION])
+
+    def save(self, out_dir) -> None:
+        from pathlib import Path
+
+        from crowdbench.outputs import save_torch_atomic
+
+        path = Path(out_dir) / self.FILE
+        if self.demos is not None and not path.exists():
+            save_torch_atomic(path, {"demos": self.demos.to_dict(), "n": len(self.demos)})
+
+    def restore(self, ckpt) -> None:
+        from pathlib import Path
+
+        from crowdbench.algos.checkpoint import CheckpointError
+
+        path = Path(ckpt).parent / self.FILE
+        try:
+            saved = torch.load(path, map_location="cpu", weights_only=True)
+            self.demos = TensorDict(saved["demos"], batch_size=[int(saved["n"])])
+        except (OSError, KeyError, RuntimeError, TypeError) as e:
+            raise CheckpointError(f"resume: train.pretrain_bc_weight > 0 needs the demonstrations {path} "
+                                  f"({type(e).__name__}); pass train.pretrain_bc_weight=0 to continue without") from None
