@@ -25,11 +25,13 @@ import tempfile
 import time
 from pathlib import Path
 
+# overrides and frames between probes (PPO collects ~10x more frames per minute than TD3)
 RECIPES = {
-    "td3": [],  # the default recipe (crowdbench run algo=td3 encoder=gatedgcn)
-    "sac": ["method=gatedgcn_sac"],
-    "ppo": ["experiment=ppo"],
-    "td3_orca": ["train.pretrain=orca"],
+    "td3": ([], 7168),  # the default recipe (crowdbench run algo=td3 encoder=gatedgcn)
+    "sac": (["method=gatedgcn_sac"], 7168),
+    "ppo": (["experiment=ppo"], 40960),
+    # the ORCA warm start with its cloning term held over the first 10,000 updates
+    "td3_orca": (["train.pretrain=orca", "train.pretrain_bc_weight=1", "train.pretrain_bc_updates=10000"], 7168),
 }
 
 
@@ -57,7 +59,9 @@ def one_run(recipe: str, seed: int, args) -> dict:
     from crowdbench.cli import compose
     from crowdbench.envs.protocol import PAPER_SCENES
 
-    overrides = [*RECIPES[recipe], f"seed={seed}", f"cpus={args.cpus}", f"train.probe_every={args.probe_every}",
+    recipe_overrides, probe_every = RECIPES[recipe]
+    overrides = [*recipe_overrides, f"seed={seed}", f"cpus={args.cpus}",
+                 f"train.probe_every={args.probe_every or probe_every}",
                  f"train.max_minutes={args.minutes}", "train.save_buffer=false", *args.overrides]
     cfg = compose(overrides)
     torch.set_num_threads(cfg.cpus)
@@ -115,7 +119,7 @@ def main(argv=None) -> int:
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     p.add_argument("--minutes", type=float, default=10.0, help="training wall time per run")
     p.add_argument("--probe-allowance", type=float, default=10.0, help="extra minutes for the probes")
-    p.add_argument("--probe-every", type=int, default=7168)
+    p.add_argument("--probe-every", type=int, default=0, help="frames between probes (default: the recipe's)")
     p.add_argument("--episodes", type=int, default=50)
     p.add_argument("--target", type=float, default=0.90)
     p.add_argument("--cpus", type=int, default=2)
