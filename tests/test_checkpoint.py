@@ -102,3 +102,15 @@ def test_a_foreign_format_tag_is_refused(tmp_path):
     torch.save({"format": "someone-else-v3", "config": {}, "actor": {}, "frames": 0}, path)
     with pytest.raises(CheckpointError, match="not a crowdbench checkpoint"):
         load_checkpoint(path)
+
+
+def test_format_4_fills_the_warm_start_keys_with_the_schema_defaults():
+    """An older run trained without the imitation warm start: its config gets the keys with the values
+    the schema gives a run that does not pretrain (so a resumed or compared config matches today's)."""
+    from crowdbench.algos.checkpoint import PRETRAIN_DEFAULTS
+    from crowdbench.config_schema import TrainConfig
+
+    schema = {f.name: f.default for f in fields(TrainConfig) if f.name.startswith("pretrain")}
+    assert PRETRAIN_DEFAULTS == schema
+    state = load_checkpoint(SHIPPED)
+    assert {k: state["config"]["train"][k] for k in schema} == schema

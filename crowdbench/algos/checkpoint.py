@@ -68,11 +68,21 @@ UNREAD_ALGO_KEYS = {
 }
 
 
+# the imitation warm start's keys (train.pretrain*, format 4) as a run before them trained: no warm start
+PRETRAIN_DEFAULTS = {"pretrain": None, "pretrain_frames": 20000, "pretrain_epochs": 3, "pretrain_batch": 256,
+                     "pretrain_lr": 1.0e-3, "pretrain_heldout": 0.1, "pretrain_bc_weight": 0.0,
+                     "pretrain_bc_updates": 20000}
+
+
 def _upgrade_3(state: dict) -> dict:
-    """Format 3 -> 4: drop the algo keys the algorithm never read."""
-    algo = state["config"].get("algo", {})
+    """Format 3 -> 4: drop the algo keys the algorithm never read; no imitation warm start."""
+    cfg = state["config"]
+    algo = cfg.get("algo", {})
     for key in UNREAD_ALGO_KEYS.get(algo.get("name"), ()):
         algo.pop(key, None)
+    if "train" in cfg:
+        for key, value in PRETRAIN_DEFAULTS.items():
+            cfg["train"].setdefault(key, value)
     return state
 
 
