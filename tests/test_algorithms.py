@@ -62,6 +62,9 @@ def test_a_registered_algorithm_is_picked_up_by_the_cli(tmp_path, capsys):
     finally:
         unregister_algorithm("toy")
     assert "toy" not in names()
+    from hydra.core.config_store import ConfigStore
+
+    assert "toy.yaml" not in ConfigStore.instance().repo["algo"]
 
 
 def test_unknown_algorithms_and_keys_are_one_line_errors(tmp_path, capsys):

@@ -79,8 +79,15 @@ def register_algorithm(cls: type) -> type:
 
 
 def unregister_algorithm(name: str) -> None:
-    """Undo :func:`register_algorithm` (tests); a built-in one goes back to its module."""
+    """Undo :func:`register_algorithm` (tests), its ConfigStore entries included; a built-in one goes
+    back to its module."""
     if name in BUILTIN:
         _ENTRIES[name] = BUILTIN[name]
-    else:
-        _ENTRIES.pop(name, None)
+        return
+    if _ENTRIES.pop(name, None) is None:
+        return
+    from hydra.core.config_store import ConfigStore
+
+    repo = ConfigStore.instance().repo
+    for group in (repo.get("algo", {}), repo.get("schema", {}).get("algo", {})):
+        group.pop(f"{name}.yaml", None)
