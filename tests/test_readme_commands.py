@@ -52,6 +52,8 @@ INVOCATIONS: dict[str, list[list[str]]] = {
         [["run", *RUN, "train.total_frames=256", "train.max_minutes=30", "seed=1"]],
     "crowdbench run ... out=RUN resume=true": [["run", *RUN, "train.total_frames=384", "out={run}", "resume=true"]],
     "crowdbench run ... train.progress_reward=0": [["run", *RUN, "train.progress_reward=0"]],
+    "crowdbench run ... train.pretrain=orca": [["run", *RUN, "train.pretrain=orca", "train.pretrain_frames=256",
+                                                "train.pretrain_epochs=1"]],
     "crowdbench run ... algo.n_steps=5": [["run", *RUN, "algo.n_steps=5"]],
     "crowdbench run ... algo.exploration=ou": [["run", *RUN, "algo.exploration=ou"]],
     "crowdbench run ... algo.critic_lookahead=0": [["run", *RUN, "algo.critic_lookahead=0"]],
@@ -63,6 +65,9 @@ INVOCATIONS: dict[str, list[list[str]]] = {
     "crowdbench run -m encoder=gatedgcn,gcn,mlp seed=0,1,2":
         [["run", "-m", "encoder=gatedgcn,gcn,mlp", "seed=0,1,2", *SWEEP, "out={tmp}/sweep9"]],
     "crowdbench run -m experiment=leaderboard": [["run", "-m", "experiment=leaderboard", *SWEEP, "out={sweep}"]],
+    "crowdbench run -m experiment=ppo": [["run", "-m", "experiment=ppo", "seed=0", "env.batch=8", "algo.minibatch_size=64",
+                                          "algo.epochs=1", *(o for o in SWEEP if not o.startswith(("algo.", "train.utd"))),
+                                          "out={tmp}/ppo_sweep"]],
     "crowdbench submit SWEEP_DIR": [["submit", "{sweep}", "--root", "{lb}"]],
     "crowdbench submit RUN --name NAME --entry LABEL":
         [["submit", "{run}", "--name", "tiny_run", "--entry", "tiny TD3", "--root", "{lb}"]],
