@@ -115,8 +115,8 @@ def test_corrupted_checkpoint_and_bad_names(tmp_path, capsys):
         load_checkpoint(bad)
     assert main(["run", "encoder=transformer9000"]) == 2
     assert "unknown encoder 'transformer9000'; valid choices:" in capsys.readouterr().err
-    assert main(["run", "algo=ppo"]) == 2
-    assert "unknown algo 'ppo'; valid choices: ddpg, sac, td3" in capsys.readouterr().err
+    assert main(["run", "algo=dqn"]) == 2
+    assert "unknown algo 'dqn'; valid choices: ddpg, ppo, sac, td3" in capsys.readouterr().err
     assert main(["run", "resume=true"]) == 2
     assert "resume=true needs out=" in capsys.readouterr().err
 
