@@ -28,7 +28,6 @@ from crowdbench.algos.resume import compact_storage, remove_stale_buffers, resto
 from crowdbench.envs.policy import ACTION, GROUP
 from crowdbench.models import make_encoder
 from crowdbench.models.heads import (
-    OBS_KEYS,
     STATE_ACTION_VALUE,
     Critic,
     actor_module,
@@ -247,8 +246,8 @@ class OffPolicyAlgorithm(Algorithm):
         logs = imitate(self.cfg, self.actor, self.actor_kind, demos, [critic], prepare)
         sync_targets(self.loss)
         self.rb.extend(demos.select(*KEEP, *[STEPS] * (self.a.n_steps > 1)))
-        if self.cloning is not None:
-            self.cloning.demos = demos.select(*OBS_KEYS, ACTION)
+        if self.cloning is not None:  # the cloning term keeps what its minibatches read
+            self.cloning = DemoCloning(self.cfg, demos)
         return logs
 
     def update(self, sample, n: int) -> dict[str, float]:
