@@ -68,6 +68,10 @@ INVOCATIONS: dict[str, list[list[str]]] = {
     "crowdbench run -m experiment=ppo": [["run", "-m", "experiment=ppo", "seed=0", "env.batch=8", "algo.minibatch_size=64",
                                           "algo.epochs=1", *(o for o in SWEEP if not o.startswith(("algo.", "train.utd"))),
                                           "out={tmp}/ppo_sweep"]],
+    "crowdbench run -m experiment=baselines": [["run", "-m", "experiment=baselines", "seed=0", *SWEEP,
+                                                "out={tmp}/baselines_sweep"]],
+    "crowdbench run encoder=sarl\\|dsrnn encoder.compact=true": [["run", "encoder=sarl", "encoder.compact=true", *RUN],
+                                                                ["run", "encoder=dsrnn", "encoder.compact=true", *RUN]],
     "crowdbench submit SWEEP_DIR": [["submit", "{sweep}", "--root", "{lb}"]],
     "crowdbench submit RUN --name NAME --entry LABEL":
         [["submit", "{run}", "--name", "tiny_run", "--entry", "tiny TD3", "--root", "{lb}"]],
