@@ -184,7 +184,6 @@ class SARLConfig:
     interact: list[int] = field(default_factory=lambda: [32, 32], metadata={"ge": 1, "min_len": 1})
     attention: list[int] = field(default_factory=lambda: [32], metadata={"ge": 1})
     hidden: list[int] = field(default_factory=lambda: [64], metadata={"ge": 1})
-    compact: bool = False  # training-side compaction of the human slots (models/compact.py)
 
 
 @dataclass
@@ -206,9 +205,6 @@ class RGLConfig:
     embed: list[int] = field(default_factory=lambda: [64], metadata={"ge": 1})
     layers: int = bounded(2, ge=1)
     skip: bool = True
-    similarity: str = bounded("cosine", choices=("cosine", "embedded_gaussian"))
-    scale: float = bounded(5.0, gt=0)  # the cosine logits' bound
-    compact: bool = False  # training-side compaction of the human slots (models/compact.py)
 
 
 
@@ -232,7 +228,6 @@ class DSRNNConfig:
     embed: int = bounded(32, ge=1)  # edge / node embedding width
     attn_dim: int = bounded(32, ge=1)  # query / key width
     spatial_velocity: bool = True  # relative velocity in the spatial edges (DS-RNN: positions only)
-    compact: bool = False  # training-side compaction of the human slots (models/compact.py)
 
 
 

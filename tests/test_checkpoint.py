@@ -7,7 +7,6 @@ from pathlib import Path
 
 import pytest
 import torch
-from omegaconf import OmegaConf
 
 from crowdbench.algos.actors import build_actor
 from crowdbench.algos.checkpoint import (
@@ -28,7 +27,7 @@ def test_a_shipped_format_1_checkpoint_loads_with_the_upgraded_config():
     raw = torch.load(SHIPPED, map_location="cpu", weights_only=True)
     assert raw["format"] == LEGACY_TAG and "per_weights" not in raw["config"]["algo"]  # really format 1
     state = load_checkpoint(SHIPPED)
-    assert state["format"] == FORMAT == 5
+    assert state["format"] == FORMAT == 4
     assert state["config"]["env"]["humans"] == "replay"  # format 3: trained among the humans as recorded
     algo = state["config"]["algo"]
     assert algo["per_weights"] is False
@@ -62,21 +61,6 @@ def test_format_2_reactive_run_keeps_its_humans(tmp_path):
     torch.save({"format": 2, "config": {"env": {"name": "crowdnav"}, "algo": {}, "train": {}}, "actor": {},
                 "frames": 0}, tmp_path / "c.pt")
     assert load_checkpoint(tmp_path / "c.pt")["config"]["env"] == {"name": "crowdnav"}  # not a replay run
-
-
-def test_format_4_set_encoders_trained_uncompacted_and_rgl_with_the_bilinear_similarity(tmp_path):
-    """Format 4 -> 5: a run before ``encoder.compact`` and RGL's ``similarity`` keeps what it trained with."""
-    for enc, want in [({"name": "rgl", "dim": 8}, {"compact": False, "similarity": "embedded_gaussian", "scale": 5.0}),
-                      ({"name": "sarl"}, {"compact": False}), ({"name": "gatedgcn"}, {})]:
-        torch.save({"format": 4, "config": {"encoder": dict(enc), "algo": {}, "train": {}}, "actor": {}, "frames": 0},
-                   tmp_path / "e.pt")
-        assert load_checkpoint(tmp_path / "e.pt")["config"]["encoder"] == {**enc, **want}
-    # a format-5 config is kept as written (the yaml's defaults differ from the upgrade's)
-    from crowdbench.cli import compose
-
-    assert OmegaConf.to_container(compose(["encoder=rgl"]).encoder) == {
-        "name": "rgl", "dim": 32, "embed": [64], "layers": 2, "skip": True, "similarity": "cosine", "scale": 5.0,
-        "compact": True}
 
 
 def test_every_shipped_checkpoint_loads():

@@ -70,8 +70,6 @@ INVOCATIONS: dict[str, list[list[str]]] = {
                                           "out={tmp}/ppo_sweep"]],
     "crowdbench run -m experiment=baselines": [["run", "-m", "experiment=baselines", "seed=0", *SWEEP,
                                                 "out={tmp}/baselines_sweep"]],
-    "crowdbench run encoder=sarl\\|dsrnn encoder.compact=true": [["run", "encoder=sarl", "encoder.compact=true", *RUN],
-                                                                ["run", "encoder=dsrnn", "encoder.compact=true", *RUN]],
     "crowdbench submit SWEEP_DIR": [["submit", "{sweep}", "--root", "{lb}"]],
     "crowdbench submit RUN --name NAME --entry LABEL":
         [["submit", "{run}", "--name", "tiny_run", "--entry", "tiny TD3", "--root", "{lb}"]],

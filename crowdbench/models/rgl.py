@@ -6,7 +6,7 @@ IROS 2020 (arXiv:1909.13165); reference code: ``ChanganVR/RelationalGraphLearnin
 fully connected graph over the robot and the observed humans::
 
     X     = [w_r(s); w_h(w_1); ...; w_h(w_M)]                node embeddings (MLPs, ReLU), width D
-    A_ij  = softmax_j (W_theta x_i)^T (W_phi x_j)             embedded Gaussian similarity (see below)
+    A_ij  = softmax_j (W_theta x_i)^T (W_phi x_j)             embedded Gaussian similarity
     H_1   = ReLU(A X W_1) + X,   H_2 = ReLU(A H_1 W_2) + H_1  GCN layers with the code's skip connection
 
 The adjacency is computed once from ``X`` and shared by the layers (the benchmark config:
@@ -24,16 +24,6 @@ padded humans get zero adjacency weight as targets (their rows of ``A`` are zero
 (their columns are excluded from the softmax), so each observed row sums to 1 over the observed
 nodes (the robot included: its self-similarity is part of the softmax, as in the code).
 
-Similarity (``similarity``): ``"cosine"`` (the default here) replaces the bilinear logits by
-``scale * cos(W_theta x_i, W_phi x_j)``, bounded by ``scale`` (5). The paper's form
-(``"embedded_gaussian"``) is unbounded, and under TD3 the critics' copies grow it until the robot's
-row is one-hot: after 28,672 frames of the leaderboard recipe the maps' spectral norms were 69-94
-(about 1 at initialisation), the row's entropy 0.0 on real observations, the critic loss 20 (0.01
-before 6k frames), and the robot waited (0.0 success, 82% timeouts); a Huber critic loss did not
-prevent it. The reference code trains a value network after imitation instead, and never
-differentiates an actor through the adjacency. With cosine logits the same recipe learns
-(docs/baselines.md).
-
 ``h_nodes [*, M + 1, D]``: the robot (node 0) and the human slots, zero on unobserved slots.
 ``last_adjacency [*, M + 1]`` is the robot's row of ``A`` in the most recent plain call (robot
 first); ``last_gates`` shows its human entries as :class:`~crowdbench.models.base.Gates` for the
@@ -50,18 +40,12 @@ from crowdbench.models.base import Gates, is_plain
 from crowdbench.models.graph import flatten_obs, unpack_obs
 from crowdbench.models.sarl import human_gates, masked_softmax, relu_mlp
 
-SIMILARITIES = ("cosine", "embedded_gaussian")
-
 
 class RGLEncoder(nn.Module):
-    def __init__(self, dim: int = 32, embed=(64,), layers: int = 2, skip: bool = True,
-                 similarity: str = "cosine", scale: float = 5.0):
+    def __init__(self, dim: int = 32, embed=(64,), layers: int = 2, skip: bool = True):
         super().__init__()
-        if similarity not in SIMILARITIES:
-            raise ValueError(f"encoder.similarity: {similarity!r} is not one of {', '.join(SIMILARITIES)}")
         self.out_dim = self.dim = dim
         self.skip = skip
-        self.similarity, self.scale = similarity, scale
         self.w_r = relu_mlp(6, dim, embed, last_relu=True)
         self.w_h = relu_mlp(4, dim, embed, last_relu=True)
         self.w_theta = nn.Linear(dim, dim, bias=False)
@@ -71,11 +55,7 @@ class RGLEncoder(nn.Module):
 
     def adjacency(self, x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
         """``[B, N, N]`` row-normalised similarity over valid nodes (zero rows for invalid nodes)."""
-        q, k = self.w_theta(x), self.w_phi(x)
-        if self.similarity == "cosine":
-            q = self.scale * nn.functional.normalize(q, dim=-1, eps=1e-6)
-            k = nn.functional.normalize(k, dim=-1, eps=1e-6)
-        sim = q @ k.transpose(-1, -2)
+        sim = self.w_theta(x) @ self.w_phi(x).transpose(-1, -2)
         return masked_softmax(sim, valid.unsqueeze(-2)) * valid.unsqueeze(-1)
 
     def forward(self, robot, humans=None, humans_mask=None):
