@@ -184,6 +184,7 @@ class SARLConfig:
     interact: list[int] = field(default_factory=lambda: [32, 32], metadata={"ge": 1, "min_len": 1})
     attention: list[int] = field(default_factory=lambda: [32], metadata={"ge": 1})
     hidden: list[int] = field(default_factory=lambda: [64], metadata={"ge": 1})
+    compact: bool = False  # compacted human slots in training updates (models/compact.py)
 
 
 @dataclass
@@ -205,7 +206,9 @@ class RGLConfig:
     embed: list[int] = field(default_factory=lambda: [64], metadata={"ge": 1})
     layers: int = bounded(2, ge=1)
     skip: bool = True
-
+    similarity: str = bounded("cosine", choices=("cosine", "embedded_gaussian"))  # adjacency logits
+    scale: float = bounded(5.0, gt=0)  # cosine logits lie in [-scale, scale]
+    compact: bool = True  # compacted human slots in training updates (models/compact.py)
 
 
 @dataclass
@@ -228,6 +231,7 @@ class DSRNNConfig:
     embed: int = bounded(32, ge=1)  # edge / node embedding width
     attn_dim: int = bounded(32, ge=1)  # query / key width
     spatial_velocity: bool = True  # relative velocity in the spatial edges (DS-RNN: positions only)
+    compact: bool = False  # compacted human slots in training updates (models/compact.py)
 
 
 

@@ -27,7 +27,7 @@ def test_a_shipped_format_1_checkpoint_loads_with_the_upgraded_config():
     raw = torch.load(SHIPPED, map_location="cpu", weights_only=True)
     assert raw["format"] == LEGACY_TAG and "per_weights" not in raw["config"]["algo"]  # really format 1
     state = load_checkpoint(SHIPPED)
-    assert state["format"] == FORMAT == 4
+    assert state["format"] == FORMAT == 5
     assert state["config"]["env"]["humans"] == "replay"  # format 3: trained among the humans as recorded
     algo = state["config"]["algo"]
     assert algo["per_weights"] is False
@@ -114,3 +114,22 @@ def test_format_4_fills_the_warm_start_keys_with_the_schema_defaults():
     assert PRETRAIN_DEFAULTS == schema
     state = load_checkpoint(SHIPPED)
     assert {k: state["config"]["train"][k] for k in schema} == schema
+
+
+def test_format_5_keeps_a_format_4_rgl_run_on_the_similarity_and_slots_it_trained_with(tmp_path):
+    """RGL's cosine similarity and the compacted slots became defaults in format 5: a format-4 RGL run
+    (the shipped rgl_bilinear_td3_s0) had the embedded-Gaussian similarity and full slots; values stored
+    in a checkpoint are never replaced."""
+    shipped = ROOT / "leaderboard" / "submissions" / "rgl_bilinear_td3_s0" / "checkpoint.pt"
+    raw = torch.load(shipped, map_location="cpu", weights_only=True)
+    assert raw["format"] == 4 and "similarity" not in raw["config"]["encoder"]
+    enc = load_checkpoint(shipped)["config"]["encoder"]
+    assert (enc["similarity"], enc["scale"], enc["compact"]) == ("embedded_gaussian", 5.0, False)
+    for name, extra in (("sarl", {}), ("dsrnn", {}), ("rgl", {"similarity": "cosine", "scale": 2.0, "compact": True})):
+        torch.save({"format": 4, "config": {"encoder": {"name": name, **extra}}, "actor": {}, "frames": 0},
+                   tmp_path / f"{name}.pt")
+        got = load_checkpoint(tmp_path / f"{name}.pt")["config"]["encoder"]
+        assert got == {"name": name, "compact": False, **({"similarity": "embedded_gaussian", "scale": 5.0}
+                                                          if name == "rgl" else {}), **extra}
+    torch.save({"format": 4, "config": {"encoder": {"name": "gat"}}, "actor": {}, "frames": 0}, tmp_path / "g.pt")
+    assert load_checkpoint(tmp_path / "g.pt")["config"]["encoder"] == {"name": "gat"}  # no compaction key

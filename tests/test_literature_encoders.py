@@ -82,7 +82,11 @@ def ref_rgl(enc, robot, humans, mask):
     for b in range(robot.shape[0]):
         x = [enc.w_r(robot[b])] + [enc.w_h(w) for w in observed(humans, mask, b)]
         n = len(x)
-        sim = [[float(enc.w_theta(x[i]) @ enc.w_phi(x[j])) for j in range(n)] for i in range(n)]
+        q, k = [enc.w_theta(v) for v in x], [enc.w_phi(v) for v in x]
+        if enc.similarity == "cosine":
+            sim = [[enc.scale * float(q[i] @ k[j] / (q[i].norm() * k[j].norm())) for j in range(n)] for i in range(n)]
+        else:
+            sim = [[float(q[i] @ k[j]) for j in range(n)] for i in range(n)]
         a = [[math.exp(v - max(r)) / sum(math.exp(u - max(r)) for u in r) for v in r] for r in sim]
         h = x
         for w in enc.gcn:
@@ -102,6 +106,42 @@ def test_batched_forward_equals_loop_reference(obs, name):
         _, got = enc(*obs)
         want = ref(*obs)
     torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-5)
+
+
+def test_rgl_embedded_gaussian_equals_loop_reference(obs):
+    """The paper's bilinear similarity (the first leaderboard row's) against the same loop."""
+    torch.manual_seed(3)
+    enc = make_encoder("rgl", **SMALL["rgl"], similarity="embedded_gaussian")
+    with torch.no_grad():
+        _, got = enc(*obs)
+        want = ref_rgl(enc, *obs)[0]
+    torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-5)
+
+
+def test_rgl_cosine_logits_stay_bounded_where_the_bilinear_ones_saturate(obs):
+    """Grown similarity weights (what TD3's critic did to RGL) make the bilinear softmax one-hot; the
+    cosine's weights keep a ratio of at most e^(2 scale) between any two observed nodes."""
+    robot, humans, mask = obs
+    rows = {}
+    for sim in ("cosine", "embedded_gaussian"):
+        torch.manual_seed(5)
+        enc = make_encoder("rgl", **SMALL["rgl"], similarity=sim, scale=2.0)
+        with torch.no_grad():
+            for w in (enc.w_theta, enc.w_phi):
+                w.weight.mul_(30.0)
+            enc(robot, humans, mask)
+        rows[sim] = enc.last_adjacency
+    valid = torch.cat((torch.ones_like(mask[:, :1]), mask), 1)
+    many = valid.sum(-1) >= 3
+    cos, bil = rows["cosine"], rows["embedded_gaussian"]
+    ratio = cos.where(valid, 0.0).amax(-1) / cos.where(valid, math.inf).amin(-1)
+    assert (ratio[many] <= math.exp(4.0) * (1 + 1e-5)).all()
+    assert (bil.amax(-1)[many] > 0.999).any()  # one-hot rows: the saturation the cosine rules out
+
+
+def test_rgl_refuses_an_unknown_similarity():
+    with pytest.raises(ValueError, match="encoder.similarity: 'dot' is not one of cosine, embedded_gaussian"):
+        make_encoder("rgl", similarity="dot")
 
 
 def test_lstm_rl_vmap_path_equals_nn_lstm(obs):

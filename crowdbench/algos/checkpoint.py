@@ -20,7 +20,7 @@ REQUIRED = ("config", "actor", "frames")
 # 0.1.0) wrote the string tag LEGACY_TAG instead; its configs may lack keys added since, which
 # :func:`upgrade` fills with the values the format-1 code used. Bump FORMAT when a change to the
 # saved fields or config needs an upgrade step, and add that step to UPGRADES.
-FORMAT = 4
+FORMAT = 5
 LEGACY_TAG = "crowdbench-checkpoint-v1"
 
 
@@ -86,7 +86,19 @@ def _upgrade_3(state: dict) -> dict:
     return state
 
 
-UPGRADES = {1: _upgrade_1, 2: _upgrade_2, 3: _upgrade_3}  # format n -> n + 1
+def _upgrade_4(state: dict) -> dict:
+    """Format 4 -> 5: ``encoder.compact`` (set encoders) and RGL's ``encoder.similarity`` / ``scale``
+    appeared; a run before them trained uncompacted, RGL with the embedded-Gaussian similarity."""
+    enc = state["config"].get("encoder", {})
+    if enc.get("name") in ("sarl", "rgl", "dsrnn"):
+        enc.setdefault("compact", False)
+    if enc.get("name") == "rgl":
+        enc.setdefault("similarity", "embedded_gaussian")
+        enc.setdefault("scale", 5.0)
+    return state
+
+
+UPGRADES = {1: _upgrade_1, 2: _upgrade_2, 3: _upgrade_3, 4: _upgrade_4}  # format n -> n + 1
 
 
 def upgrade(state: dict, version: int) -> dict:

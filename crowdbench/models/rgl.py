@@ -6,7 +6,8 @@ IROS 2020 (arXiv:1909.13165); reference code: ``ChanganVR/RelationalGraphLearnin
 fully connected graph over the robot and the observed humans::
 
     X     = [w_r(s); w_h(w_1); ...; w_h(w_M)]                node embeddings (MLPs, ReLU), width D
-    A_ij  = softmax_j (W_theta x_i)^T (W_phi x_j)             embedded Gaussian similarity
+    A_ij  = softmax_j (W_theta x_i)^T (W_phi x_j)             embedded Gaussian similarity (the paper's)
+    A_ij  = softmax_j c cos(W_theta x_i, W_phi x_j)           scaled cosine (the default here, c = scale)
     H_1   = ReLU(A X W_1) + X,   H_2 = ReLU(A H_1 W_2) + H_1  GCN layers with the code's skip connection
 
 The adjacency is computed once from ``X`` and shared by the layers (the benchmark config:
@@ -24,6 +25,13 @@ padded humans get zero adjacency weight as targets (their rows of ``A`` are zero
 (their columns are excluded from the softmax), so each observed row sums to 1 over the observed
 nodes (the robot included: its self-similarity is part of the softmax, as in the code).
 
+Why a bounded similarity is the default (``similarity: cosine``, ``scale: 5``): with the paper's
+unbounded bilinear logits, TD3's critic drove them up until the softmax was one-hot (the critic's
+``W_theta^T W_phi`` grew to spectral norm ~100 and its loss from 0.01 to 20; docs/baselines.md), and
+the trained policy stood still. The cosine keeps every logit in ``[-c, c]``, so the weight ratio of
+two neighbours is at most ``e^{2c}`` (e^10 at c = 5): sharp, never one-hot. ``embedded_gaussian``
+is the paper's form, kept for the first leaderboard row and for comparison.
+
 ``h_nodes [*, M + 1, D]``: the robot (node 0) and the human slots, zero on unobserved slots.
 ``last_adjacency [*, M + 1]`` is the robot's row of ``A`` in the most recent plain call (robot
 first); ``last_gates`` shows its human entries as :class:`~crowdbench.models.base.Gates` for the
@@ -34,18 +42,25 @@ edge to draw, so those values sum to ``1 - A_00``, not 1.
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from crowdbench.models.base import Gates, is_plain
 from crowdbench.models.graph import flatten_obs, unpack_obs
 from crowdbench.models.sarl import human_gates, masked_softmax, relu_mlp
 
+SIMILARITIES = ("cosine", "embedded_gaussian")
+
 
 class RGLEncoder(nn.Module):
-    def __init__(self, dim: int = 32, embed=(64,), layers: int = 2, skip: bool = True):
+    def __init__(self, dim: int = 32, embed=(64,), layers: int = 2, skip: bool = True,
+                 similarity: str = "cosine", scale: float = 5.0):
         super().__init__()
+        if similarity not in SIMILARITIES:
+            raise ValueError(f"encoder.similarity: {similarity!r} is not one of {', '.join(SIMILARITIES)}")
         self.out_dim = self.dim = dim
         self.skip = skip
+        self.similarity, self.scale = similarity, float(scale)
         self.w_r = relu_mlp(6, dim, embed, last_relu=True)
         self.w_h = relu_mlp(4, dim, embed, last_relu=True)
         self.w_theta = nn.Linear(dim, dim, bias=False)
@@ -55,7 +70,11 @@ class RGLEncoder(nn.Module):
 
     def adjacency(self, x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
         """``[B, N, N]`` row-normalised similarity over valid nodes (zero rows for invalid nodes)."""
-        sim = self.w_theta(x) @ self.w_phi(x).transpose(-1, -2)
+        q, k = self.w_theta(x), self.w_phi(x)
+        if self.similarity == "cosine":  # eps: the zero embeddings of unobserved slots stay zero
+            q = self.scale * F.normalize(q, dim=-1, eps=1e-8)
+            k = F.normalize(k, dim=-1, eps=1e-8)
+        sim = q @ k.transpose(-1, -2)
         return masked_softmax(sim, valid.unsqueeze(-2)) * valid.unsqueeze(-1)
 
     def forward(self, robot, humans=None, humans_mask=None):
