@@ -58,6 +58,8 @@ INVOCATIONS: dict[str, list[list[str]]] = {
     "crowdbench run ... algo.exploration=ou": [["run", *RUN, "algo.exploration=ou"]],
     "crowdbench run ... algo.critic_lookahead=0": [["run", *RUN, "algo.critic_lookahead=0"]],
     "crowdbench run ... train.human_dropout=0.8": [["run", *RUN, "train.human_dropout=0.8"]],
+    "crowdbench run ... encoder=rgl encoder.similarity=embedded_gaussian":
+        [["run", *RUN, "encoder=rgl", "encoder.similarity=embedded_gaussian", "encoder.compact=false"]],
     "crowdbench run ... algo.replay=prioritized": [["run", *RUN, "algo.replay=prioritized"]],
     "crowdbench run ... algo.replay=prioritized algo.per_weights=true":
         [["run", *RUN, "algo.replay=prioritized", "algo.per_weights=true"]],
