@@ -184,6 +184,7 @@ class SARLConfig:
     interact: list[int] = field(default_factory=lambda: [32, 32], metadata={"ge": 1, "min_len": 1})
     attention: list[int] = field(default_factory=lambda: [32], metadata={"ge": 1})
     hidden: list[int] = field(default_factory=lambda: [64], metadata={"ge": 1})
+    score_cap: float | None = bounded(None, gt=0)  # attention logits squashed into (-cap, cap) (models/base.py soft_cap)
     compact: bool = False  # compacted human slots in training updates (models/compact.py)
 
 
@@ -220,6 +221,7 @@ class GATConfig(GCNConfig):
     out_heads: int = bounded(1, ge=1)  # last-layer heads (averaged)
     negative_slope: float = bounded(0.2, ge=0)  # LeakyReLU of the attention scores
     edge_features: bool = True  # relative positions in the scores
+    score_cap: float | None = bounded(None, gt=0)  # attention logits squashed into (-cap, cap) (models/base.py soft_cap)
 
 
 @dataclass
@@ -231,6 +233,7 @@ class DSRNNConfig:
     embed: int = bounded(32, ge=1)  # edge / node embedding width
     attn_dim: int = bounded(32, ge=1)  # query / key width
     spatial_velocity: bool = True  # relative velocity in the spatial edges (DS-RNN: positions only)
+    score_cap: float | None = bounded(None, gt=0)  # attention logits squashed into (-cap, cap) (models/base.py soft_cap)
     compact: bool = False  # compacted human slots in training updates (models/compact.py)
 
 

@@ -27,7 +27,7 @@ def test_a_shipped_format_1_checkpoint_loads_with_the_upgraded_config():
     raw = torch.load(SHIPPED, map_location="cpu", weights_only=True)
     assert raw["format"] == LEGACY_TAG and "per_weights" not in raw["config"]["algo"]  # really format 1
     state = load_checkpoint(SHIPPED)
-    assert state["format"] == FORMAT == 5
+    assert state["format"] == FORMAT == 6
     assert state["config"]["env"]["humans"] == "replay"  # format 3: trained among the humans as recorded
     algo = state["config"]["algo"]
     assert algo["per_weights"] is False
@@ -116,7 +116,7 @@ def test_format_4_fills_the_warm_start_keys_with_the_schema_defaults():
     assert {k: state["config"]["train"][k] for k in schema} == schema
 
 
-def test_format_5_keeps_a_format_4_rgl_run_on_the_similarity_and_slots_it_trained_with(tmp_path):
+def test_formats_5_and_6_keep_older_runs_on_the_similarity_slots_and_scores_they_trained_with(tmp_path):
     """RGL's cosine similarity and the compacted slots became defaults in format 5: a format-4 RGL run
     (the shipped rgl_bilinear_td3_s0) had the embedded-Gaussian similarity and full slots; values stored
     in a checkpoint are never replaced."""
@@ -130,6 +130,10 @@ def test_format_5_keeps_a_format_4_rgl_run_on_the_similarity_and_slots_it_traine
                    tmp_path / f"{name}.pt")
         got = load_checkpoint(tmp_path / f"{name}.pt")["config"]["encoder"]
         assert got == {"name": name, "compact": False, **({"similarity": "embedded_gaussian", "scale": 5.0}
-                                                          if name == "rgl" else {}), **extra}
-    torch.save({"format": 4, "config": {"encoder": {"name": "gat"}}, "actor": {}, "frames": 0}, tmp_path / "g.pt")
-    assert load_checkpoint(tmp_path / "g.pt")["config"]["encoder"] == {"name": "gat"}  # no compaction key
+                                                          if name == "rgl" else {"score_cap": None}), **extra}
+    for fmt in (4, 5):  # format 6: unbounded attention scores, GAT without a compaction key
+        torch.save({"format": fmt, "config": {"encoder": {"name": "gat"}}, "actor": {}, "frames": 0}, tmp_path / "g.pt")
+        assert load_checkpoint(tmp_path / "g.pt")["config"]["encoder"] == {"name": "gat", "score_cap": None}
+    torch.save({"format": 5, "config": {"encoder": {"name": "gat", "score_cap": 5.0}}, "actor": {}, "frames": 0},
+               tmp_path / "c.pt")
+    assert load_checkpoint(tmp_path / "c.pt")["config"]["encoder"]["score_cap"] == 5.0

@@ -68,7 +68,8 @@ def reference_gat(enc, robot, humans, mask):
                         s = layer.att["dst"][k] @ (w @ h[i]) + layer.att["src"][k] @ (w @ h[j])
                         if "edge" in layer.att:
                             s = s + layer.att["edge"][k] @ (pos[j] - pos[i])
-                        scores.append(F.leaky_relu(s, layer.slope))
+                        s = F.leaky_relu(s, layer.slope)
+                        scores.append(s if layer.score_cap is None else layer.score_cap * torch.tanh(s / layer.score_cap))
                     alpha = torch.softmax(torch.stack(scores), 0)
                     heads.append(sum(a * (w @ h[j]) for a, j in zip(alpha, nbrs[i], strict=True)))
                     if i == 0:
@@ -83,8 +84,8 @@ def reference_gat(enc, robot, humans, mask):
 
 
 @pytest.mark.parametrize("rf", [True, False])
-@pytest.mark.parametrize("cfg", [{}, {"heads": 2, "out_heads": 3}, {"edge_features": False, "layers": 1}],
-                         ids=["preset", "heads", "no-edges-1-layer"])
+@pytest.mark.parametrize("cfg", [{}, {"heads": 2, "out_heads": 3}, {"edge_features": False, "layers": 1},
+                                 {"score_cap": 0.5}], ids=["preset", "heads", "no-edges-1-layer", "capped"])
 def test_gat_matches_loop_reference(real_obs, rf, cfg):
     torch.manual_seed(1)
     enc = make_encoder("gat", dim=8, k=64, receptive_field=rf, **cfg)  # K never binds
@@ -139,7 +140,8 @@ def reference_dsrnn(enc, robot, humans, mask):
             if enc.spatial_velocity:
                 x = torch.cat((x, humans[b, i, 2:4] - r[2:4]))
             s.append(enc.spatial(x))
-            logits.append(enc.query(t) @ enc.key(s[-1]) / math.sqrt(enc.attn_dim))
+            z = enc.query(t) @ enc.key(s[-1]) / math.sqrt(enc.attn_dim)
+            logits.append(z if enc.score_cap is None else enc.score_cap * torch.tanh(z / enc.score_cap))
         if seen:
             alpha = torch.softmax(torch.stack(logits), 0)
             a = sum(w * sj for w, sj in zip(alpha, s, strict=True))
@@ -152,10 +154,10 @@ def reference_dsrnn(enc, robot, humans, mask):
     return torch.stack(out), att
 
 
-@pytest.mark.parametrize("velocity", [True, False])
-def test_dsrnn_matches_loop_reference(real_obs, velocity):
+@pytest.mark.parametrize("velocity,cap", [(True, None), (False, None), (True, 0.3)])
+def test_dsrnn_matches_loop_reference(real_obs, velocity, cap):
     torch.manual_seed(2)
-    enc = make_encoder("dsrnn", dim=8, embed=12, attn_dim=6, spatial_velocity=velocity)
+    enc = make_encoder("dsrnn", dim=8, embed=12, attn_dim=6, spatial_velocity=velocity, score_cap=cap)
     robot, humans, mask = (x[:, 0] for x in obs_args(real_obs))
     mask = mask.clone()
     mask[0] = False  # a robot that observes nobody

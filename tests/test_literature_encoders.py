@@ -48,7 +48,8 @@ def ref_sarl(enc, robot, humans, mask):
         alpha = []
         if e:
             e_m = sum(e) / len(e)
-            alpha = torch.softmax(torch.cat([enc.psi_a(torch.cat((ei, e_m))) for ei in e]), 0)
+            z = torch.cat([enc.psi_a(torch.cat((ei, e_m))) for ei in e])
+            alpha = torch.softmax(z if enc.score_cap is None else enc.score_cap * torch.tanh(z / enc.score_cap), 0)
             c = sum(a * enc.psi_h(ei) for a, ei in zip(alpha, e, strict=True))
         out.append(enc.f_v(torch.cat((s, c))))
         weights.append(alpha)
@@ -137,6 +138,41 @@ def test_rgl_cosine_logits_stay_bounded_where_the_bilinear_ones_saturate(obs):
     ratio = cos.where(valid, 0.0).amax(-1) / cos.where(valid, math.inf).amin(-1)
     assert (ratio[many] <= math.exp(4.0) * (1 + 1e-5)).all()
     assert (bil.amax(-1)[many] > 0.999).any()  # one-hot rows: the saturation the cosine rules out
+
+
+def test_sarl_capped_scores_equal_loop_reference(obs):
+    torch.manual_seed(3)
+    enc = make_encoder("sarl", **SMALL["sarl"], score_cap=0.2)
+    with torch.no_grad():
+        _, got = enc(*obs)
+        want = ref_sarl(enc, *obs)[0]
+    torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-5)
+
+
+@pytest.mark.parametrize("name", ["sarl", "gat", "dsrnn"])
+def test_capped_attention_stays_bounded_where_the_unbounded_saturates(obs, name):
+    """Score weights grown 100x (the critics' drift) make the papers' softmax one-hot; with ``score_cap=c``
+    any two attended weights differ by at most e^(2c)."""
+    robot, humans, mask = obs
+    small = {"sarl": SMALL["sarl"], "gat": {"dim": 8, "k": 64}, "dsrnn": {"dim": 8, "embed": 8, "attn_dim": 8}}[name]
+    rows = {}
+    for cap in (None, 1.5):
+        torch.manual_seed(6)
+        enc = make_encoder(name, **small, score_cap=cap)
+        with torch.no_grad():
+            for n, p in enc.named_parameters():
+                if any(k in n for k in ("psi_a", "att.", "query", "key")):
+                    p.mul_(100.0)
+            enc(robot, humans, mask)
+        g = enc.last_gates
+        rows[cap] = (g.full, g.mask)
+    full, m = rows[1.5]
+    many = m.sum(-1) >= 3
+    hi = full.where(m.unsqueeze(-1), 0.0).amax(1)
+    lo = full.where(m.unsqueeze(-1), math.inf).amin(1)
+    assert ((hi / lo)[many] <= math.exp(3.0) * (1 + 1e-5)).all()
+    full, m = rows[None]
+    assert (full.where(m.unsqueeze(-1), 0.0).amax(1)[many] > 0.999).any()
 
 
 def test_rgl_refuses_an_unknown_similarity():

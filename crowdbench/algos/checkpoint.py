@@ -20,7 +20,7 @@ REQUIRED = ("config", "actor", "frames")
 # 0.1.0) wrote the string tag LEGACY_TAG instead; its configs may lack keys added since, which
 # :func:`upgrade` fills with the values the format-1 code used. Bump FORMAT when a change to the
 # saved fields or config needs an upgrade step, and add that step to UPGRADES.
-FORMAT = 5
+FORMAT = 6
 LEGACY_TAG = "crowdbench-checkpoint-v1"
 
 
@@ -98,7 +98,16 @@ def _upgrade_4(state: dict) -> dict:
     return state
 
 
-UPGRADES = {1: _upgrade_1, 2: _upgrade_2, 3: _upgrade_3, 4: _upgrade_4}  # format n -> n + 1
+def _upgrade_5(state: dict) -> dict:
+    """Format 5 -> 6: ``encoder.score_cap`` (sarl, gat, dsrnn) appeared; a run before it had the
+    papers' unbounded attention scores."""
+    enc = state["config"].get("encoder", {})
+    if enc.get("name") in ("sarl", "gat", "dsrnn"):
+        enc.setdefault("score_cap", None)
+    return state
+
+
+UPGRADES = {1: _upgrade_1, 2: _upgrade_2, 3: _upgrade_3, 4: _upgrade_4, 5: _upgrade_5}  # format n -> n + 1
 
 
 def upgrade(state: dict, version: int) -> dict:

@@ -57,6 +57,16 @@ class Gates(NamedTuple):
     full: torch.Tensor
 
 
+def soft_cap(scores: torch.Tensor, cap: float | None) -> torch.Tensor:
+    """Attention logits squashed into ``(-cap, cap)`` by ``cap * tanh(scores / cap)`` (``None``: unchanged).
+
+    Why (``encoder.score_cap``): an unbounded score lets TD3's critic sharpen a softmax over the
+    humans until it is one-hot, after which its Q-function jumps whenever the argmax changes
+    (docs/baselines.md); with the cap, two weights differ by at most a factor ``e^(2 cap)``. The
+    tanh keeps the gradient everywhere (a clamp would zero it), as in Gemma 2's logit soft-capping."""
+    return scores if cap is None else cap * torch.tanh(scores / cap)
+
+
 def is_plain(t: torch.Tensor) -> bool:
     """False inside ``torch.vmap`` / ``torch.func`` transforms (do not store such tensors)."""
     return not torch._C._functorch.is_functorch_wrapped_tensor(t)

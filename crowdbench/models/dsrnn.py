@@ -50,7 +50,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from crowdbench.models.base import Gates, is_plain
+from crowdbench.models.base import Gates, is_plain, soft_cap
 from crowdbench.models.graph import flatten_obs, unpack_obs
 
 
@@ -61,9 +61,11 @@ def _mlp(n_in: int, width: int) -> nn.Sequential:
 class DSRNNEncoder(nn.Module):
     """DS-RNN's spatial-edge attention of the robot, one time step (module docstring)."""
 
-    def __init__(self, dim: int = 32, embed: int = 32, attn_dim: int = 32, spatial_velocity: bool = True):
+    def __init__(self, dim: int = 32, embed: int = 32, attn_dim: int = 32, spatial_velocity: bool = True,
+                 score_cap: float | None = None):
         super().__init__()
         self.out_dim = dim
+        self.score_cap = score_cap  # None: DS-RNN's unbounded scaled dot product (models/base.py soft_cap)
         self.spatial_velocity = spatial_velocity
         self.attn_dim = attn_dim
         self.spatial = _mlp(4 if spatial_velocity else 2, embed)  # spatial edges robot-human
@@ -87,6 +89,7 @@ class DSRNNEncoder(nn.Module):
         The largest logit contributes ``exp(0) = 1``, so ``den.clamp_min(1)`` only changes rows
         without an observed human (all weights 0)."""
         logit = (self.key(s) @ self.query(t).unsqueeze(-1)).squeeze(-1) / math.sqrt(self.attn_dim)
+        logit = soft_cap(logit, self.score_cap)
         logit = torch.where(mask, logit, float("-inf"))
         mx = logit.amax(-1, keepdim=True).clamp_min(-1e30).detach()
         w = torch.exp(logit - mx)

@@ -49,7 +49,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from crowdbench.models.base import GraphEncoder, indicator_row
+from crowdbench.models.base import GraphEncoder, indicator_row, soft_cap
 from crowdbench.models.graph import DEFAULT_K, RADIUS2, Z_DIM
 
 
@@ -64,8 +64,9 @@ class GATLayer(nn.Module):
     """One graph-attention layer: ``heads`` heads of ``out`` channels, concatenated or averaged."""
 
     def __init__(self, dim: int, heads: int, concat: bool, negative_slope: float = 0.2,
-                 edge_features: bool = True):
+                 edge_features: bool = True, score_cap: float | None = None):
         super().__init__()
+        self.score_cap = score_cap  # None: GAT's unbounded LeakyReLU score (models/base.py soft_cap)
         if concat and dim % heads:
             raise ValueError(f"gat: encoder.dim ({dim}) must be divisible by encoder.heads ({heads})")
         self.dim, self.heads, self.concat, self.slope = dim, heads, concat, negative_slope
@@ -111,9 +112,9 @@ class GATLayer(nn.Module):
         a row with an edge has ``den >= 1``: ``den.clamp_min(1)`` only changes empty rows."""
         b, t, k, _ = ss.shape
         n_h = self.heads
-        logit = F.leaky_relu(sd.unsqueeze(2) + ss, self.slope)
+        logit = soft_cap(F.leaky_relu(sd.unsqueeze(2) + ss, self.slope), self.score_cap)
         logit = torch.where(mask.unsqueeze(-1) > 0, logit, float("-inf"))
-        lg = F.leaky_relu(sd[:, 0] + ss_g, self.slope)  # [B, H] the robot's goal edge
+        lg = soft_cap(F.leaky_relu(sd[:, 0] + ss_g, self.slope), self.score_cap)  # [B, H] the robot's goal edge
         mx = logit.amax(2)
         m0 = torch.maximum(mx[:, 0], lg)
         mx = (m0.unsqueeze(1) if t == 1 else torch.cat((m0.unsqueeze(1), mx[:, 1:]), 1))
@@ -198,8 +199,9 @@ class GATEncoder(GraphEncoder):
         out_heads: int = 1,
         negative_slope: float = 0.2,
         edge_features: bool = True,
+        score_cap: float | None = None,
     ):
-        kw = {"negative_slope": negative_slope, "edge_features": edge_features}
+        kw = {"negative_slope": negative_slope, "edge_features": edge_features, "score_cap": score_cap}
         super().__init__(dim, 0, k, radius2, receptive_field, heads=heads, concat=True, **kw)
         self.n_layers = layers
         hidden = [GATLayer(dim, heads, concat=True, **kw) for _ in range(layers - 1)]

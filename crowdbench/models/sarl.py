@@ -35,7 +35,7 @@ import torch
 from torch import nn
 from torchrl.modules import MLP
 
-from crowdbench.models.base import Gates, is_plain
+from crowdbench.models.base import Gates, is_plain, soft_cap
 from crowdbench.models.graph import flatten_obs, unpack_obs
 
 
@@ -74,9 +74,11 @@ def human_gates(weights: torch.Tensor, mask: torch.Tensor, lead: tuple) -> Gates
 
 
 class SARLEncoder(nn.Module):
-    def __init__(self, dim: int = 32, embed=(64, 32), interact=(32, 32), attention=(32,), hidden=(64,)):
+    def __init__(self, dim: int = 32, embed=(64, 32), interact=(32, 32), attention=(32,), hidden=(64,),
+                 score_cap: float | None = None):
         super().__init__()
         self.out_dim = self.dim = dim
+        self.score_cap = score_cap  # None: SARL's unbounded MLP score (models/base.py soft_cap)
         self.phi_e = relu_mlp(6 + 5, embed[-1], embed[:-1], last_relu=True)
         self.psi_h = relu_mlp(embed[-1], interact[-1], interact[:-1], last_relu=False)
         self.psi_a = relu_mlp(2 * embed[-1], 1, attention, last_relu=False, last_bias=False)  # a softmax ignores it
@@ -90,7 +92,7 @@ class SARLEncoder(nn.Module):
         e = self.phi_e(x)  # [B, M, E]
         mf = mask.unsqueeze(-1).to(e.dtype)
         e_m = (e * mf).sum(1, keepdim=True) / mf.sum(1, keepdim=True).clamp_min(1.0)
-        scores = self.psi_a(torch.cat((e, e_m.expand_as(e)), -1)).squeeze(-1)
+        scores = soft_cap(self.psi_a(torch.cat((e, e_m.expand_as(e)), -1)).squeeze(-1), self.score_cap)
         alpha = masked_softmax(scores, mask)
         c = (alpha.unsqueeze(-2) @ self.psi_h(e)).squeeze(-2)  # [B, H]
         return self.f_v(torch.cat((robot, c), -1)), alpha
