@@ -60,6 +60,8 @@ INVOCATIONS: dict[str, list[list[str]]] = {
     "crowdbench run ... train.human_dropout=0.8": [["run", *RUN, "train.human_dropout=0.8"]],
     "crowdbench run ... encoder=rgl encoder.similarity=embedded_gaussian":
         [["run", *RUN, "encoder=rgl", "encoder.similarity=embedded_gaussian", "encoder.compact=false"]],
+    "crowdbench run ... encoder=sarl\\|gat\\|dsrnn encoder.score_cap=5":
+        [["run", *RUN, f"encoder={e}", "encoder.score_cap=5"] for e in ("sarl", "gat", "dsrnn")],
     "crowdbench run ... algo.replay=prioritized": [["run", *RUN, "algo.replay=prioritized"]],
     "crowdbench run ... algo.replay=prioritized algo.per_weights=true":
         [["run", *RUN, "algo.replay=prioritized", "algo.per_weights=true"]],
