@@ -1,9 +1,11 @@
 """How sharp is a critic's attention over the humans? (docs/baselines.md, "The seeds that fail")
 
     python benchmarks/critic_attention.py RUN/checkpoint.pt [RUN2/checkpoint.pt ...]
+    python benchmarks/critic_attention.py --actor leaderboard/submissions/sarl_td3_s*/checkpoint.pt
 
-For TD3/DDPG training checkpoints (a run's ``checkpoint.pt``: a submission keeps the actor only) of
-an attention encoder (sarl, rgl, gat, dsrnn; gatedgcn's sigmoid gates are shown the same way).
+For TD3/DDPG training checkpoints (a run's ``checkpoint.pt``) of an attention encoder (sarl, rgl,
+gat, dsrnn; gatedgcn's sigmoid gates are shown the same way); ``--actor`` reads the actor's
+attention instead, the only network a leaderboard submission keeps.
 Straight-to-goal runs 64 students001 training episodes (seed 7) for 10 steps; on those observations
 the checkpoint's actor picks its action and critic 1 reads the graph it reads in the actor loss
 (the lookahead prediction under that action, when the run has one). Printed per checkpoint: the
@@ -60,6 +62,16 @@ def sharpness(weights: torch.Tensor, mask: torch.Tensor) -> dict[str, float]:
             "uniform_entropy": float(n[keep].float().log().mean()), "rows": int(keep.sum())}
 
 
+def measure_actor(path: str, obs) -> dict[str, float]:
+    from crowdbench.algos.checkpoint import policy_from_checkpoint
+
+    actor = policy_from_checkpoint(path).actor
+    with torch.no_grad():
+        actor.module(*obs)
+    enc = actor.module.encoder
+    return sharpness(*attention_rows(enc))
+
+
 def measure(path: str, obs) -> dict[str, float]:
     state = load_checkpoint(path)
     if "loss" not in state:
@@ -83,10 +95,13 @@ def measure(path: str, obs) -> dict[str, float]:
 
 def main(paths: list[str]) -> None:
     torch.set_num_threads(1)
+    actor = "--actor" in paths
+    paths = [p for p in paths if p != "--actor"]
     obs = observations()
-    print(f"{'checkpoint':60s} {'entropy':>8s} {'max w':>6s} {'uniform':>8s} {'rows':>5s}")
+    print(f"{'checkpoint (' + ('actor' if actor else 'critic 1') + ')':60s} {'entropy':>8s} {'max w':>6s} "
+          f"{'uniform':>8s} {'rows':>5s}")
     for path in paths:
-        r = measure(path, obs)
+        r = measure_actor(path, obs) if actor else measure(path, obs)
         print(f"{path:60s} {r['entropy']:8.2f} {r['max_weight']:6.2f} {r['uniform_entropy']:8.2f} {r['rows']:5d}")
 
 
