@@ -48,6 +48,8 @@ def attention_rows(encoder) -> tuple[torch.Tensor, torch.Tensor]:
         mask = torch.cat((torch.ones_like(gates.mask[:, :1]), gates.mask[:, 1:]), -1)  # robot self, humans
         return row.unsqueeze(-1), mask
     gates = encoder.last_gates
+    if gates is None:
+        raise SystemExit(f"encoder {type(encoder).__name__} has no attention over the humans (no last_gates)")
     return gates.full, gates.mask
 
 
