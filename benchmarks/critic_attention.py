@@ -92,7 +92,7 @@ def measure(path: str, obs) -> dict[str, float]:
             robot, humans, mask = lookahead(robot, humans, mask, action, crit.lookahead_dt, crit.v_max)
         with params.to_module(net):
             crit.encoder(robot, humans, mask)  # the raw forward records the attention (never compacted)
-            return sharpness(*attention_rows(crit.encoder))
+    return sharpness(*attention_rows(crit.encoder))
 
 
 def main(paths: list[str]) -> None:
