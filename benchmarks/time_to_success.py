@@ -32,6 +32,8 @@ RECIPES = {
     "ppo": (["experiment=ppo"], 40960),
     # the ORCA warm start with its cloning term held over the first 10,000 updates
     "td3_orca": (["train.pretrain=orca", "train.pretrain_bc_weight=1", "train.pretrain_bc_updates=10000"], 7168),
+    # RGL with its bounded similarity at the leaderboard recipe (28,672 frames; 0.935 ± 0.013 on v1)
+    "rgl": (["experiment=baselines", "method=rgl_td3"], 3584),
 }
 
 
