@@ -42,15 +42,14 @@ def observations(batch: int = 64, steps: int = 10):
 
 def attention_rows(encoder) -> tuple[torch.Tensor, torch.Tensor]:
     """``weights [B, K, C]`` (C heads or channels) and ``mask [B, K]`` of the most recent plain call."""
-    row = getattr(encoder, "last_adjacency", None)
-    if row is not None:
-        gates = encoder.last_gates
-        mask = torch.cat((torch.ones_like(gates.mask[:, :1]), gates.mask[:, 1:]), -1)  # robot self, humans
-        return row.unsqueeze(-1), mask
     gates = encoder.last_gates
     if gates is None:
         raise SystemExit(f"encoder {type(encoder).__name__} has no attention over the humans (no last_gates)")
-    return gates.full, gates.mask
+    row = getattr(encoder, "last_adjacency", None)
+    if row is None:
+        return gates.full, gates.mask
+    mask = torch.cat((torch.ones_like(gates.mask[:, :1]), gates.mask[:, 1:]), -1)  # robot self, humans
+    return row.unsqueeze(-1), mask
 
 
 def sharpness(weights: torch.Tensor, mask: torch.Tensor) -> dict[str, float]:
