@@ -119,6 +119,12 @@ def test_rgl_embedded_gaussian_equals_loop_reference(obs):
     torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-5)
 
 
+def weight_spread(w, valid, dim=-1):
+    """Largest / smallest weight and the largest weight over the ``valid`` entries along ``dim``."""
+    top = w.where(valid, 0.0).amax(dim)
+    return top / w.where(valid, math.inf).amin(dim), top
+
+
 def test_rgl_cosine_logits_stay_bounded_where_the_bilinear_ones_saturate(obs):
     """Grown similarity weights (what TD3's critic did to RGL) make the bilinear softmax one-hot; the
     cosine's weights keep a ratio of at most e^(2 scale) between any two observed nodes."""
@@ -134,10 +140,10 @@ def test_rgl_cosine_logits_stay_bounded_where_the_bilinear_ones_saturate(obs):
         rows[sim] = enc.last_adjacency
     valid = torch.cat((torch.ones_like(mask[:, :1]), mask), 1)
     many = valid.sum(-1) >= 3
-    cos, bil = rows["cosine"], rows["embedded_gaussian"]
-    ratio = cos.where(valid, 0.0).amax(-1) / cos.where(valid, math.inf).amin(-1)
+    ratio, top = weight_spread(rows["cosine"], valid)
     assert (ratio[many] <= math.exp(4.0) * (1 + 1e-5)).all()
-    assert (bil.amax(-1)[many] > 0.999).any()  # one-hot rows: the saturation the cosine rules out
+    _, top = weight_spread(rows["embedded_gaussian"], valid)
+    assert (top[many] > 0.999).any()  # one-hot rows: the saturation the cosine rules out
 
 
 def test_sarl_capped_scores_equal_loop_reference(obs):
@@ -166,13 +172,11 @@ def test_capped_attention_stays_bounded_where_the_unbounded_saturates(obs, name)
             enc(robot, humans, mask)
         g = enc.last_gates
         rows[cap] = (g.full, g.mask)
-    full, m = rows[1.5]
-    many = m.sum(-1) >= 3
-    hi = full.where(m.unsqueeze(-1), 0.0).amax(1)
-    lo = full.where(m.unsqueeze(-1), math.inf).amin(1)
-    assert ((hi / lo)[many] <= math.exp(3.0) * (1 + 1e-5)).all()
-    full, m = rows[None]
-    assert (full.where(m.unsqueeze(-1), 0.0).amax(1)[many] > 0.999).any()
+    many = rows[1.5][1].sum(-1) >= 3
+    ratio, _ = weight_spread(rows[1.5][0], rows[1.5][1].unsqueeze(-1), dim=1)
+    assert (ratio[many] <= math.exp(3.0) * (1 + 1e-5)).all()
+    _, top = weight_spread(rows[None][0], rows[None][1].unsqueeze(-1), dim=1)
+    assert (top[many] > 0.999).any()
 
 
 def test_rgl_refuses_an_unknown_similarity():
