@@ -8,7 +8,7 @@ Each run trains with ``crowdbench.algos.train.train`` exactly as ``crowdbench ru
 threads, for at most ``--minutes`` of training wall time. Every ``--probe-every`` frames the held-out
 probe evaluates the current actor on all four paper scenes (``--episodes`` protocol episodes each,
 deterministic actions) and records their average success. The probe's own time is subtracted from the
-wall time (it is the measurement, not training). Reported per run: the training time at which the
+wall time (it is the measurement, not training); an imitation warm start's is counted. Reported per run: the training time at which the
 average first reached ``--target`` (or "not reached"), and the final probe's average success.
 
 Runs execute one after the other, so a run has the machine to itself only if nothing else runs:
@@ -55,9 +55,30 @@ def probe_all(cfg, scenes, episodes: int, spent: list[float]):
     return probe
 
 
+def timed_warm_start(train_module, cfg) -> list[float]:
+    """Count the imitation warm start as training time: the loop's ``wall_time_s`` starts after it, so
+    its duration is taken off the run's ``train.max_minutes`` and added to every probe's time. (A wrapper
+    rather than a flag of ``train``: the loop's own clock is the resumable RL time, which a warm start
+    that never repeats on resume does not belong to.)"""
+    took = [0.0]
+    inner = train_module.warm_start
+
+    def warm_start(*a, **kw):
+        t = time.perf_counter()
+        logs = inner(*a, **kw)
+        took[0] = time.perf_counter() - t
+        cfg.train.max_minutes = float(cfg.train.max_minutes) - took[0] / 60
+        return logs
+
+    warm_start.__wrapped__ = inner
+    train_module.warm_start = warm_start
+    return took
+
+
 def one_run(recipe: str, seed: int, args) -> dict:
     import torch
 
+    from crowdbench.algos import train as train_module
     from crowdbench.algos.checkpoint import load_checkpoint, policy_from_checkpoint
     from crowdbench.algos.train import train
     from crowdbench.cli import compose
@@ -75,7 +96,11 @@ def one_run(recipe: str, seed: int, args) -> dict:
         out = Path(tmp) / "run"
         cfg.train.max_minutes = float(args.minutes)  # raised by each probe's duration (probe_all)
         probe = probe_all(cfg, PAPER_SCENES, args.episodes, spent)
-        stats = train(cfg, out, progress=False, probe=probe)
+        pretrain_s = timed_warm_start(train_module, cfg)
+        try:
+            stats = train(cfg, out, progress=False, probe=probe)
+        finally:
+            train_module.warm_start = train_module.warm_start.__wrapped__
         rows = [line.split(",") for line in (out / "logs" / "scalars" / "probe_paper_success.csv").read_text().split()]
         walls = dict(line.split(",") for line in (out / "logs" / "scalars" / "wall_time_s.csv").read_text().split())
         state = load_checkpoint(out / "checkpoint.pt")
@@ -86,14 +111,14 @@ def one_run(recipe: str, seed: int, args) -> dict:
     curve, reached, budget = [], None, 60 * args.minutes
     for i, (frames, success) in enumerate(rows):
         # the loop reads the wall time before it probes: subtract the probes before this one
-        train_s = float(walls[frames]) - sum(spent[:i])
+        train_s = float(walls[frames]) - sum(spent[:i]) + pretrain_s[0]
         if train_s > budget + 30 and curve:  # past the budget (a run stops at the first batch after it)
             break
         curve.append((int(float(frames)), train_s, float(success)))
         if reached is None and float(success) >= args.target:
             reached = train_s
     return {"recipe": recipe, "seed": seed, "overrides": overrides, "curve": curve, "time_to_target_s": reached,
-            "final_success": curve[-1][2] if curve else None, "probe_s": sum(spent),
+            "final_success": curve[-1][2] if curve else None, "probe_s": sum(spent), "pretrain_s": pretrain_s[0],
             "load_avg_start": load0, "load_avg_end": os.getloadavg()[0]}
 
 
