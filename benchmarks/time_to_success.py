@@ -3,6 +3,7 @@
     python benchmarks/time_to_success.py                                  # every recipe, seeds 0 1 2
     python benchmarks/time_to_success.py --recipes td3 ppo --seeds 0 --minutes 10
     python benchmarks/time_to_success.py --plot docs/img/time_to_success.png --summary runs/tts/summary.json
+    python benchmarks/time_to_success.py --load runs/tts/summary*.json --plot docs/img/time_to_success.png
 
 Each run trains with ``crowdbench.algos.train.train`` exactly as ``crowdbench run`` does, with ``cpus``
 threads, for at most ``--minutes`` of training wall time. Every ``--probe-every`` frames the held-out
@@ -143,6 +144,29 @@ def plot(runs: list[dict], target: float, path: Path) -> None:
     fig.savefig(path, dpi=120)
 
 
+def report(r: dict, target: float) -> str:
+    t = r["time_to_target_s"]
+    return (f"{r['recipe']:10s} seed {r['seed']}: {'%.1f min' % (t / 60) if t is not None else 'not reached':>12s} to "
+            f"{target:.2f}; final {r['final_success']:.3f} after {r['curve'][-1][0]:,} frames; "
+            f"load {r['load_avg_start']:.2f}/{r['load_avg_end']:.2f}")
+
+
+def per_recipe(runs: list[dict], target: float) -> list[str]:
+    """One line per recipe: seeds reaching the target, their times, the final success's mean and sd."""
+    import statistics
+
+    lines = []
+    for recipe in dict.fromkeys(r["recipe"] for r in runs):
+        rs = [r for r in runs if r["recipe"] == recipe]
+        times = sorted(r["time_to_target_s"] / 60 for r in rs if r["time_to_target_s"] is not None)
+        finals = [r["final_success"] for r in rs]
+        sd = statistics.stdev(finals) if len(finals) > 1 else 0.0
+        lines.append(f"{recipe:10s} {len(times)}/{len(rs)} seeds reach {target:.2f}"
+                     f"{' (' + ', '.join(f'{t:.1f}' for t in times) + ' min)' if times else ''}; "
+                     f"final {statistics.mean(finals):.3f} +- {sd:.3f}")
+    return lines
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--recipes", nargs="+", default=list(RECIPES), choices=list(RECIPES))
@@ -155,19 +179,25 @@ def main(argv=None) -> int:
     p.add_argument("--overrides", nargs="*", default=[])
     p.add_argument("--summary", type=Path)
     p.add_argument("--plot", type=Path)
+    p.add_argument("--load", nargs="+", type=Path, default=[],
+                   help="report and plot the runs of earlier --summary files instead of training")
     args = p.parse_args(argv)
     runs = []
-    for recipe in args.recipes:
+    for path in args.load:
+        for r in json.loads(path.read_text()):
+            # the target may differ from the one the run was reported against
+            r["time_to_target_s"] = next((t for _, t, s in r["curve"] if s >= args.target), None)
+            runs.append(r)
+            print(report(r, args.target))
+    for recipe in args.recipes if not args.load else []:
         for seed in args.seeds:
             r = one_run(recipe, seed, args)
             runs.append(r)
-            t = r["time_to_target_s"]
-            print(f"{recipe:10s} seed {seed}: {'%.1f min' % (t / 60) if t is not None else 'not reached':>12s} to "
-                  f"{args.target:.2f}; final {r['final_success']:.3f} after {r['curve'][-1][0]:,} frames; "
-                  f"load {r['load_avg_start']:.2f}/{r['load_avg_end']:.2f}", flush=True)
+            print(report(r, args.target), flush=True)
             if args.summary:
                 args.summary.parent.mkdir(parents=True, exist_ok=True)
                 args.summary.write_text(json.dumps(runs, indent=1) + "\n")
+    print("\n".join(per_recipe(runs, args.target)))
     if args.plot:
         plot(runs, args.target, args.plot)
     return 0
