@@ -31,10 +31,14 @@ RECIPES = {
     "td3": ([], 7168),  # the default recipe (crowdbench run algo=td3 encoder=gatedgcn)
     "sac": (["method=gatedgcn_sac"], 7168),
     "ppo": (["experiment=ppo"], 40960),
+    # PPO's recipe ends its 409,600 frames in ~3 minutes on 2 idle cores: the same, held to the wall-time budget
+    "ppo_long": (["experiment=ppo", "train.total_frames=4096000"], 204800),
     # the ORCA warm start with its cloning term held over the first 10,000 updates
     "td3_orca": (["train.pretrain=orca", "train.pretrain_bc_weight=1", "train.pretrain_bc_updates=10000"], 7168),
     # RGL with its bounded similarity at the leaderboard recipe (28,672 frames; 0.935 ± 0.013 on v1)
     "rgl": (["experiment=baselines", "method=rgl_td3"], 3584),
+    "rgl_orca": (["experiment=baselines", "method=rgl_td3", "train.pretrain=orca", "train.pretrain_bc_weight=1",
+                  "train.pretrain_bc_updates=10000"], 3584),
 }
 
 
