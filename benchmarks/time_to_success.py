@@ -9,8 +9,9 @@ Each run trains with ``crowdbench.algos.train.train`` exactly as ``crowdbench ru
 threads, for at most ``--minutes`` of training wall time. Every ``--probe-every`` frames the held-out
 probe evaluates the current actor on all four paper scenes (``--episodes`` protocol episodes each,
 deterministic actions) and records their average success. The probe's own time is subtracted from the
-wall time (it is the measurement, not training); an imitation warm start's is counted. Reported per run: the training time at which the
-average first reached ``--target`` (or "not reached"), and the final probe's average success.
+wall time (it is the measurement, not training); an imitation warm start's is counted. Reported per run:
+the training time at which the average first reached ``--target`` (or "not reached"), and the final
+probe's average success.
 
 Runs execute one after the other, so a run has the machine to itself only if nothing else runs:
 the load average is recorded with each run.
@@ -37,6 +38,7 @@ RECIPES = {
     "td3_orca": (["train.pretrain=orca", "train.pretrain_bc_weight=1", "train.pretrain_bc_updates=10000"], 7168),
     # RGL with its bounded similarity at the leaderboard recipe (28,672 frames; 0.935 ± 0.013 on v1)
     "rgl": (["experiment=baselines", "method=rgl_td3"], 3584),
+    # the same with the ORCA warm start and cloning term of td3_orca
     "rgl_orca": (["experiment=baselines", "method=rgl_td3", "train.pretrain=orca", "train.pretrain_bc_weight=1",
                   "train.pretrain_bc_updates=10000"], 3584),
 }
@@ -113,16 +115,15 @@ def one_run(recipe: str, seed: int, args) -> dict:
             rows.append([str(stats["frames"]), str(probe(policy_from_checkpoint(out / "checkpoint.pt").actor)
                                                    ["probe_paper_success"])])
             walls[str(stats["frames"])] = str(state["wall_time_s"])
-    curve, reached, budget = [], None, 60 * args.minutes
+    curve, budget = [], 60 * args.minutes
     for i, (frames, success) in enumerate(rows):
         # the loop reads the wall time before it probes: subtract the probes before this one
         train_s = float(walls[frames]) - sum(spent[:i]) + pretrain_s[0]
         if train_s > budget + 30 and curve:  # past the budget (a run stops at the first batch after it)
             break
         curve.append((int(float(frames)), train_s, float(success)))
-        if reached is None and float(success) >= args.target:
-            reached = train_s
-    return {"recipe": recipe, "seed": seed, "overrides": overrides, "curve": curve, "time_to_target_s": reached,
+    return {"recipe": recipe, "seed": seed, "overrides": overrides, "curve": curve,
+            "time_to_target_s": time_to_target(curve, args.target),
             "final_success": curve[-1][2] if curve else None, "probe_s": sum(spent), "pretrain_s": pretrain_s[0],
             "load_avg_start": load0, "load_avg_end": os.getloadavg()[0]}
 
@@ -146,6 +147,11 @@ def plot(runs: list[dict], target: float, path: Path) -> None:
     ax.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=120)
+
+
+def time_to_target(curve: list, target: float) -> float | None:
+    """Training seconds at the first probe whose success reaches ``target``; None if none does."""
+    return next((t for _, t, success in curve if success >= target), None)
 
 
 def report(r: dict, target: float) -> str:
@@ -190,7 +196,7 @@ def main(argv=None) -> int:
     for path in args.load:
         for r in json.loads(path.read_text()):
             # the target may differ from the one the run was reported against
-            r["time_to_target_s"] = next((t for _, t, s in r["curve"] if s >= args.target), None)
+            r["time_to_target_s"] = time_to_target(r["curve"], args.target)
             runs.append(r)
             print(report(r, args.target))
     for recipe in args.recipes if not args.load else []:
