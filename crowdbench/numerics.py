@@ -6,7 +6,10 @@ episode a few of those bits can flip a near-miss into a collision (one episode p
 shipped checkpoints). ``crowdbench eval`` and ``crowdbench leaderboard`` therefore run with ATen's portable
 ``default`` kernels and MKL's conditional numerical reproducibility (``MKL_CBWR=COMPATIBLE``); both are
 read when torch first dispatches a kernel, so :func:`pin` must run before crowdbench imports torch
-(``crowdbench.entry``). The pin overrides the caller's environment: an official number must not depend
+(``crowdbench.entry``). NumPy dispatches too: its float64 ``sin``/``cos`` (CrowdNav's circle-crossing
+placement, ORCA's preferred-velocity perturbation) have AVX-512 (``X86_V4``) kernels whose low-order bits
+differ from the AVX2 and baseline ones, which both agree with the C library's; the AVX-512 groups are
+disabled (read when numpy is imported, which torch does). The pin overrides the caller's environment: an official number must not depend
 on it. Training is not pinned (the portable kernels are slower, and its numbers come from evaluation);
 nor is the evaluation at the end of ``crowdbench run`` (results.json records what computed it).
 Measured on the shipped checkpoints (docs/benchmarks.md): evaluation takes ~2x longer pinned.
@@ -16,7 +19,8 @@ from __future__ import annotations
 
 import os
 
-PINNED = {"ATEN_CPU_CAPABILITY": "default", "MKL_CBWR": "COMPATIBLE"}
+# NPY_DISABLE_CPU_FEATURES takes the group names of numpy >= 2.4 (older ones warn and ignore them: pyproject.toml)
+PINNED = {"ATEN_CPU_CAPABILITY": "default", "MKL_CBWR": "COMPATIBLE", "NPY_DISABLE_CPU_FEATURES": "X86_V4 AVX512_ICL AVX512_SPR"}
 
 
 def pin() -> None:

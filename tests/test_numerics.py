@@ -14,6 +14,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from crowdbench.numerics import PINNED
+
 ROOT = Path(__file__).resolve().parents[1]
 CKPT = ROOT / "leaderboard" / "submissions" / "gatedgcn_ddpg_s1" / "checkpoint.pt"
 
@@ -34,3 +36,19 @@ def test_episodes_are_the_same_under_every_cpu_capability(tmp_path):
     outcomes = "".join({"success": "S", "collision": "C", "timeout": "T"}[json.loads(line)["outcome"]]
                        for line in episodes["default"].splitlines())
     assert outcomes == committed["episode_outcomes"]["eth"]  # the leaderboard's numbers are this path's
+
+
+def test_numpy_is_pinned_before_it_is_imported():
+    # numpy reads NPY_DISABLE_CPU_FEATURES once, at import: the entry point must pin before anything imports it
+    code = "import sys, crowdbench.entry; print('numpy' in sys.modules)"
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
+    assert p.stdout.strip() == "False"
+    # every name is one the installed numpy dispatches (an unknown one only warns, and pins nothing),
+    # and its float64 cos (CrowdNav's circle placement) then runs no AVX-512 kernel on any machine
+    code = ("import json; from numpy.lib.introspect import opt_func_info; "
+            "print(json.dumps(opt_func_info(func_name='^cos$', signature='d')['cos']['dd']))")
+    p = subprocess.run([sys.executable, "-W", "error::ImportWarning", "-c", code], env={**os.environ, **PINNED},
+                       capture_output=True, text=True, timeout=120, check=False)
+    assert p.returncode == 0, p.stderr[-2000:]
+    current = json.loads(p.stdout)["current"]
+    assert "X86_V4" not in current and "AVX512" not in current

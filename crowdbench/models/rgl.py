@@ -71,7 +71,7 @@ class RGLEncoder(nn.Module):
     def adjacency(self, x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
         """``[B, N, N]`` row-normalised similarity over valid nodes (zero rows for invalid nodes)."""
         q, k = self.w_theta(x), self.w_phi(x)
-        if self.similarity == "cosine":  # eps: the zero embeddings of unobserved slots stay zero
+        if self.similarity == "cosine":  # eps: no division by zero for an all-zero embedding
             q = self.scale * F.normalize(q, dim=-1, eps=1e-8)
             k = F.normalize(k, dim=-1, eps=1e-8)
         sim = q @ k.transpose(-1, -2)
