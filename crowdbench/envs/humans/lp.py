@@ -32,6 +32,7 @@ equal to RVO2's (not merely another optimum) are needed where the optimum is not
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 # RVO2's RVO_EPSILON: below it, two line directions count as parallel.
@@ -39,6 +40,19 @@ EPS = 1e-5
 # The line y = -1e15 pointing along +x: everything above it is feasible. Its intersections with
 # any line through the speed disc are ~1e15 / |sin| away (finite in float32), never binding.
 FAR_LINE = (0.0, -1e15, 1.0, 0.0)
+
+
+def ieee_sqrt(x: torch.Tensor) -> torch.Tensor:
+    """The correctly rounded square root (RVO2's ``std::sqrt``), the same bits on every CPU.
+
+    Why not ``torch.sqrt``: on CPU it is a library routine, not the instruction: within 1 ulp but not
+    correctly rounded (17 % of float32 results are the farther neighbour), under every
+    ``ATEN_CPU_CAPABILITY`` and MKL setting, so nothing pins its bits to the IEEE ones; the ORCA
+    tracks' episodes differed in the last bits between an AVX-512 and an AMD machine while every
+    track without ``torch.sqrt`` matched bit for bit. ``torch.rsqrt`` and ``torch.norm`` use the
+    instruction already; numpy's ``sqrt`` is the instruction.
+    """
+    return torch.from_numpy(np.sqrt(x.detach().contiguous().numpy()))
 
 
 def far_lines(like: torch.Tensor) -> torch.Tensor:
@@ -68,7 +82,7 @@ def _lp1(li, lj, radius, optx, opty, direction_opt: bool):
     dot = pxi * dxi + pyi * dyi
     disc = dot * dot + radius * radius - (pxi * pxi + pyi * pyi)
     ok = 1.0 - _step(-disc)  # disc >= 0
-    sq = disc.clamp_min(0.0).sqrt()
+    sq = ieee_sqrt(disc.clamp_min(0.0))
     t_left = -dot - sq
     t_right = sq - dot
     if lj.shape[0] > 0:
@@ -110,7 +124,7 @@ def lp2_packed(lines, radius, optx, opty):
     """``linearProgram2`` (closest to ``opt``) on packed ``[L, 4, B]`` lines without absent ones
     (use :data:`FAR_LINE`). Returns ``(rx, ry, fail)`` as :func:`linear_program2`."""
     n2 = optx * optx + opty * opty
-    scale = torch.where(n2 > radius * radius, radius / n2.sqrt(), 1.0)
+    scale = torch.where(n2 > radius * radius, radius / ieee_sqrt(n2), 1.0)
     rx, ry = optx * scale, opty * scale
     n_lines = lines.shape[0]
     fail = torch.full(rx.shape, n_lines, dtype=torch.long)
@@ -174,7 +188,7 @@ def lp3_packed(lines, begin, radius, rx, ry):
         qx = torch.lerp(pxi + s * dxi, 0.5 * (pxi + pxj), par)
         qy = torch.lerp(pyi + s * dyi, 0.5 * (pyi + pyj), par)
         ex, ey = dxj - dxi, dyj - dyi
-        norm = (ex * ex + ey * ey).sqrt()
+        norm = ieee_sqrt(ex * ex + ey * ey)
         inv = 1.0 / (norm + (1.0 - _step(norm)))  # norm = 0 (same direction, skipped): 1 / 1
         bis = torch.stack([qx, qy, ex * inv, ey * inv], dim=1)
         keep = 1.0 - skip[:, None]

@@ -65,7 +65,7 @@ from __future__ import annotations
 
 import torch
 
-from crowdbench.envs.humans.lp import _gather, _rows, far_lines, lp2_packed, lp3_packed
+from crowdbench.envs.humans.lp import _gather, _rows, far_lines, ieee_sqrt, lp2_packed, lp3_packed
 
 # Internal precision (RVO2 computes in float32; see the module docstring).
 DTYPE = torch.float32
@@ -199,7 +199,7 @@ def _orca_lines(relx, rely, rvx, rvy, comb_r, vx, vy, inv_tau: float, inv_dt: fl
     c_scale = comb_r * inv_t - w_sq * inv_w
 
     # Projection on a leg: left leg if w is left of P, else the right one (sign -1 mirrors it).
-    leg = (dist_sq - r_sq).clamp_min(0.0).sqrt()
+    leg = ieee_sqrt((dist_sq - r_sq).clamp_min(0.0))
     sleg = leg * ((relx * wy - rely * wx > 0.0).to(relx.dtype) * 2.0 - 1.0)
     inv_d = 1.0 / dist_sq.clamp_min(tiny)
     ldx = (relx * sleg - rely * comb_r) * inv_d
