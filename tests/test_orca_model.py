@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from crowdbench.envs.humans.lp import linear_program2
+from crowdbench.envs.humans.lp import ieee_sqrt, linear_program2
 from crowdbench.envs.humans.orca import orca_lines, orca_velocities
 from crowdbench.envs.humans.rvo2_reference import KINDS, random_configs, rvo2_velocities
 
@@ -110,3 +110,21 @@ def test_padding_is_ignored():
     assert torch.equal(padded[:, :k], full)
     assert torch.equal(padded[:, k:], pad["vel"][:, k:])
     assert np.isfinite(full.numpy()).all()
+
+
+def test_square_roots_are_the_ieee_ones(monkeypatch):
+    # torch.sqrt on CPU returns the farther float32 neighbour for ~17% of inputs (49.62566 -> 7.0445485
+    # instead of 7.0445480), and nothing pins its bits: the solver must take the instruction's
+    x = torch.rand(100_000, generator=torch.Generator().manual_seed(0)) * 100
+    x[0] = 49.62565994262695
+    exact = torch.tensor([math.sqrt(v) for v in x.tolist()], dtype=torch.float64).to(torch.float32)
+    assert torch.equal(ieee_sqrt(x), exact)
+    assert ieee_sqrt(x).dtype == torch.float32 and ieee_sqrt(x.double()).dtype == torch.float64
+
+    def refuse(*_, **__):
+        raise AssertionError("torch.sqrt in the ORCA solver")
+
+    monkeypatch.setattr(torch, "sqrt", refuse)
+    monkeypatch.setattr(torch.Tensor, "sqrt", refuse)
+    cfg = random_configs("infeasible", 20, 8, seed=3)
+    assert torch.isfinite(orca_velocities(**cfg, **PARAMS)).all()
