@@ -38,7 +38,7 @@ def composed_combinations():
         yield [f"algo={algo}", f"encoder={enc}", f"train={train}", f"env={env}"]
 
 
-OFF_POLICY_EXPERIMENTS = ("paper", "leaderboard", "baselines", "crowdnav", "reactive")  # they set algo.replay
+OFF_POLICY_EXPERIMENTS = ("paper", "leaderboard", "baselines", "crowdnav", "reactive", "warmstart")  # they set algo.replay
 
 
 def test_every_shipped_config_combination_validates_and_every_key_has_a_schema_field():
