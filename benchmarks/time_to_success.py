@@ -38,9 +38,8 @@ RECIPES = {
     "td3_orca": (["train.pretrain=orca", "train.pretrain_bc_weight=1", "train.pretrain_bc_updates=10000"], 7168),
     # RGL with its bounded similarity at the leaderboard recipe (28,672 frames; 0.935 ± 0.013 on v1)
     "rgl": (["experiment=baselines", "method=rgl_td3"], 3584),
-    # the same with the ORCA warm start and cloning term of td3_orca
-    "rgl_orca": (["experiment=baselines", "method=rgl_td3", "train.pretrain=orca", "train.pretrain_bc_weight=1",
-                  "train.pretrain_bc_updates=10000"], 3584),
+    # the same with the ORCA warm start and cloning term of td3_orca: the named experiment
+    "rgl_orca": (["experiment=warmstart"], 3584),
 }
 
 
