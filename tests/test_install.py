@@ -13,12 +13,17 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def test_installed_wheel_evaluates_from_outside_the_repository(tmp_path):
     # the wheel is built from the checkout with the installed setuptools (no network), then installed
-    # without its dependencies into a venv that sees this interpreter's packages (torch etc.)
+    # without its dependencies into a venv that sees the packages of the interpreter running pytest (torch
+    # etc.) through a .pth line. Not `--system-site-packages`: a venv made from a venv's interpreter sees
+    # the base interpreter's packages, which on a fresh machine hold no torch.
     subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation", "-w",
                     str(tmp_path / "whl"), str(ROOT)], check=True, timeout=300)
     (wheel,) = (tmp_path / "whl").glob("crowdbench-*.whl")
-    subprocess.run([sys.executable, "-m", "venv", "--system-site-packages", str(tmp_path / "venv")], check=True)
+    subprocess.run([sys.executable, "-m", "venv", str(tmp_path / "venv")], check=True)
     bin_dir = tmp_path / "venv" / "bin"
+    (venv_site,) = (tmp_path / "venv" / "lib").glob("python3*/site-packages")
+    deps = [p for p in sys.path if p.endswith(("site-packages", "dist-packages"))]
+    (venv_site / "dependencies.pth").write_text("\n".join(deps) + "\n")
     subprocess.run([bin_dir / "pip", "install", "-q", "--no-deps", "--no-index", str(wheel)], check=True, timeout=300)
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
