@@ -154,7 +154,9 @@ def test_path_irregularity_is_batch_generic():
 
 
 # -------------------------------------------------------------- protocol v1's numbers unchanged
-BASE = "759d7f7abd8da2ae1822daa2fdec5973e85544e4"  # the last commit before these metrics
+# what NUMBERS printed on the tree of 759d7f7 (the last commit before these metrics), kept as a file so the
+# test needs no git history (a shallow clone or a source tarball has none)
+BEFORE = REPO / "tests" / "data" / "protocol_v1_hotel5_before_social_metrics.json"
 NUMBERS = """
 import json
 from crowdbench.envs.protocol import PROTOCOL_VERSION, ProtocolSpec, load_episodes
@@ -179,16 +181,11 @@ def numbers(root: Path) -> dict:
     return json.loads(out.stdout)
 
 
-def test_protocol_v1_metrics_bit_identical_to_the_code_before(tmp_path):
+def test_protocol_v1_metrics_bit_identical_to_the_code_before():
     """Every key the evaluation had before (per episode, aggregated, in results) keeps its exact value on
-    5 hotel episodes of straight and ORCA; the new metrics only add keys. "Before" is the tree of BASE,
-    exported with ``git archive`` and run in a subprocess (JSON floats round-trip exactly)."""
-    git = subprocess.run(["git", "cat-file", "-e", f"{BASE}^{{commit}}"], cwd=REPO, capture_output=True, check=False)
-    if git.returncode != 0:
-        pytest.skip(f"not a git checkout holding {BASE[:7]}")
-    archive = subprocess.run(["git", "archive", BASE], cwd=REPO, capture_output=True, check=True).stdout
-    subprocess.run(["tar", "-x", "-C", str(tmp_path)], input=archive, check=True)
-    before, after = numbers(tmp_path), numbers(REPO)
+    5 hotel episodes of straight and ORCA; the new metrics only add keys. "Before" is what 759d7f7 gave
+    (``BEFORE``; JSON floats round-trip exactly)."""
+    before, after = json.loads(BEFORE.read_text()), numbers(REPO)
     new = {"spl", "stl", "personal_space_50cm", "min_ttc", "path_irregularity", "social_nav_score"}
     renamed = {"spl", "stl", "personal_space_compliance_50cm", "min_ttc_s", "path_irregularity", "social_nav_score"}
     for name in ("straight", "orca"):
