@@ -64,7 +64,11 @@ def test_format_2_reactive_run_keeps_its_humans(tmp_path):
 
 
 def test_every_shipped_checkpoint_loads():
-    for ckpt in sorted((ROOT / "leaderboard" / "submissions").glob("*/checkpoint.pt")):
+    ckpts = sorted((ROOT / "leaderboard" / "submissions").glob("*/checkpoint.pt"))
+    learned = [d for d in (ROOT / "leaderboard" / "submissions").iterdir()
+               if "kind: learned" in (d / "submission.yaml").read_text()]
+    assert len(ckpts) == len(learned) > 0  # every learned submission ships one; an empty glob fails
+    for ckpt in ckpts:
         state = load_checkpoint(ckpt)
         assert state["format"] == FORMAT, ckpt
 

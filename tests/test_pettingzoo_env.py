@@ -28,6 +28,19 @@ def test_parallel_seed():
     parallel_seed_test(lambda: replay_parallel_env("students001"), num_cycles=50)
 
 
+def test_parallel_seed_test_catches_an_env_that_ignores_its_seed():
+    """The suite call above can fail: an env whose reset draws its own seed is refused."""
+
+    def unseeded():
+        env = replay_parallel_env("students001")
+        seeded_reset = env.reset
+        env.reset = lambda seed=None, options=None: seeded_reset(seed=None, options=options)
+        return env
+
+    with pytest.raises(AssertionError):
+        parallel_seed_test(unseeded, num_cycles=5)
+
+
 def rollout(env, seed, n=40):
     obs, infos = env.reset(seed=seed)
     env.action_space(AGENT).seed(seed)
