@@ -29,7 +29,7 @@ from crowdbench.leaderboard.tracks import TRACK_ORDER, TRACKS
 SEED = 20261201
 N_RANDOM = 250
 MAX_MESSAGE = 500  # characters of a rejection line
-MAX_SECONDS = 1.0  # per case
+MAX_CPU_S = 1.0  # CPU seconds of this process per case: a bound on work, whatever the machine's load
 
 NASTY = ["Evil | World-best method | 1.000", "a\nb", "x\r\n| forged | 1 |", "<script>alert(1)</script>",
          "[click](javascript:alert(1))", "![img](http://x/y.png)", "`code`", "*bold* _it_ ~~s~~", "\\|",
@@ -230,11 +230,11 @@ def check_tables(text: str) -> None:
 
 def test_read_submission_never_fails_otherwise(tmp_path):
     policies.default_config()  # compose the config once (not part of any case's time)
-    t_all = time.perf_counter()
+    t_all = time.process_time()
     accepted, failures = [], []
     for i, (desc, raw) in enumerate(cases()):
         d = setup_case(tmp_path, i, desc, raw)
-        t = time.perf_counter()
+        t = time.process_time()
         try:
             accepted.append((desc, read_submission(d)))
         except SubmissionError as e:
@@ -243,10 +243,10 @@ def test_read_submission_never_fails_otherwise(tmp_path):
                 failures.append(f"{desc}: bad message {msg[:200]!r}")
         except Exception as e:  # noqa: BLE001 - collected and reported below
             failures.append(f"{desc}: {type(e).__name__}: {str(e)[:200]}")
-        if time.perf_counter() - t > MAX_SECONDS:
-            failures.append(f"{desc}: {time.perf_counter() - t:.2f} s")
+        if time.process_time() - t > MAX_CPU_S:
+            failures.append(f"{desc}: {time.process_time() - t:.2f} CPU s")
     assert not failures, "\n".join(failures[:20])
-    assert time.perf_counter() - t_all < 20
+    assert time.process_time() - t_all < 20
     kinds = {s.kind for _, s in accepted}
     assert len(accepted) >= 40 and kinds == {"baseline", "learned", "oracle"}, (len(accepted), kinds)
     assert not any(desc in ("billion laughs", "alias in authors", "symlinked checkpoint") for desc, _ in accepted)
