@@ -1,7 +1,7 @@
 """The leaderboard's web site (``crowdbench leaderboard --site DIR``, crowdbench/leaderboard/site.py):
 rendered from the results on disk, submission text escaped, figures cached by fingerprint, and driven
 in headless Chromium (selenium): the numbers of results.json, sorting by a header click, an entry page,
-nothing fetched from the network. The browser test is skipped only without chromium / chromedriver."""
+nothing fetched from the network. The browser test needs chromium and chromedriver (tests/conftest.py)."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ import shutil
 from pathlib import Path
 
 import pytest
+from conftest import require_system
 from test_leaderboard import FAST, MLP, add_straight, toy_checkpoint, write_yaml
 
 from crowdbench.leaderboard import run
@@ -77,11 +78,10 @@ def test_training_command():
         "crowdbench run experiment=leaderboard 'x=a b'"
 
 
-@pytest.mark.skipif(not (CHROMIUM and CHROMEDRIVER),
-                    reason="needs chromium and chromedriver (apt-get install chromium chromium-driver)")
 def test_site_in_a_browser(board, tmp_path):
-    pytest.importorskip("selenium", reason="needs selenium (pip install selenium)")
-    from selenium import webdriver
+    require_system("chromium")
+    require_system("chromedriver")
+    from selenium import webdriver  # a dev dependency (pyproject's [dev])
     from selenium.webdriver.chrome.service import Service
     from selenium.webdriver.common.by import By
 
