@@ -13,6 +13,12 @@ import shutil
 
 import pytest
 
+# pytest-xdist runs one test process per core (pyproject's addopts): a torch thread pool in each would
+# oversubscribe the cores, and OpenMP's spinning threads then slow every test several-fold
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
+
 SYSTEM = {  # program -> (Debian package, install command)
     "bwrap": ("bubblewrap", "apt-get install bubblewrap"),
     "chromium": ("chromium", "apt-get install chromium chromium-driver"),
