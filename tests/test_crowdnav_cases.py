@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from crowdbench.envs.crowdnav_cases import CROWDNAV, case_list, crowdnav_case
+from crowdbench.envs.crowdnav_cases import CROWDNAV, case_list, crowdnav_case, reference_case
 
 # Reference values: obtained once by running CrowdNav's own code (github.com/vita-epfl/CrowdNav at commit
 # 20d678085c06831e658a65b9e20c8bb6f6ecdc10: CrowdSim.configure/reset of crowd_sim/envs/crowd_sim.py with
@@ -138,3 +138,26 @@ def test_phases_and_special_cases():
     r = crowdnav_case(0, randomize_attributes=True)
     assert ((r["human_radius"] >= 0.3) & (r["human_radius"] < 0.5)).all()
     assert ((r["human_v_pref"] >= 0.5) & (r["human_v_pref"] < 1.5)).all()
+
+
+@pytest.mark.parametrize("scenario,n,phase", [("circle", 20, "test"), ("circle", 12, "train"), ("square", 20, "val"),
+                                             ("circle", 5, "test"), ("square", 5, "test"), ("circle", 0, "test")])
+def test_batched_rejection_equals_crowdnavs_loop(scenario, n, phase):
+    """The block-wise rejection test (crowdnav_case) makes the same draws, decisions and values as the
+    one-candidate-at-a-time transcription of CrowdNav's loop (reference_case)."""
+    for case in range(0, 500, 17):
+        fast, ref = crowdnav_case(case, scenario, n, phase), reference_case(case, scenario, n, phase)
+        assert fast.keys() == ref.keys()
+        for k, v in ref.items():
+            if isinstance(v, np.ndarray):
+                assert v.dtype == fast[k].dtype and np.array_equal(v, fast[k]), (case, k)
+            else:
+                assert fast[k] == v, (case, k)
+
+
+def test_published_case_lists_keep_their_digests():
+    from crowdbench.envs.crowdnav import CrowdNavConfig
+    from crowdbench.fixed_lists import CROWDNAV as DIGESTS
+    from crowdbench.fixed_lists import crowdnav_digests
+
+    assert crowdnav_digests(CrowdNavConfig(), list(DIGESTS)) == DIGESTS

@@ -68,11 +68,13 @@ Quirks (all from ``crowd_sim/envs/crowd_sim.py`` unless named otherwise)
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
-__all__ = ["CROWDNAV", "CrowdNavFacts", "case_list", "crowdnav_case"]
+__all__ = ["CROWDNAV", "CrowdNavFacts", "case_list", "crowdnav_case", "reference_case"]
 
 
 @dataclass(frozen=True)
@@ -157,6 +159,10 @@ def crowdnav_case(
 ) -> dict:
     """The initial state of CrowdNav's ``reset(phase, test_case=case)`` with ``n_humans`` humans.
 
+    Candidates are rejection-tested many at a time (:func:`_first_free`), with the same draws in the
+    same order and the same accept/reject decisions as :func:`reference_case` (one candidate at a time,
+    as CrowdNav does); ``randomize_attributes`` takes that reference path.
+
     Returns float64 arrays ``robot_start [2]``, ``robot_goal [2]``, ``human_start [n, 2]``,
     ``human_goal [n, 2]``, ``human_radius [n]``, ``human_v_pref [n]``, the scalars ``robot_theta``,
     ``seed`` (the ``np.random.seed`` argument, ``None`` for the debug case -1), ``case``, ``phase``,
@@ -164,6 +170,115 @@ def crowdnav_case(
     circle ``human_angle [n]`` and ``human_noise [n, 2]`` (start = circle_radius * (cos, sin) + noise);
     square ``human_sign [n]`` (+1: start at x >= 0, goal at x <= 0; -1: the reverse).
     """
+    if randomize_attributes:
+        return reference_case(case, scenario, n_humans, phase, randomize_attributes=True)
+    f = CROWDNAV
+    phase = _phase(phase)
+    scen = _scenario(scenario)
+    case, n = int(case), int(n_humans)
+    if n < 0 or case < 0:
+        return reference_case(case, scenario, n_humans, phase)  # the errors and the fixed debug case
+    seed = f.offset(phase) + case
+    u = _Draws(np.random.RandomState(seed))
+    robot_start, robot_goal = np.array([0.0, -f.circle_radius]), np.array([0.0, f.circle_radius])
+    starts, goals = np.zeros((n, 2)), np.zeros((n, 2))
+    placed_s, placed_g = [robot_start], [robot_goal]  # CrowdNav compares against these agents
+    radii = [f.robot_radius]
+    r, v = f.human_radius, f.human_v_pref
+    angles, noises, signs = np.zeros(n), np.zeros((n, 2)), np.zeros(n)
+    for i in range(n):
+        rad = np.array(radii)
+        if scen == "circle":
+            ref = np.concatenate((placed_s, placed_g))
+            (angle, nx, ny), start = _first_free(u, 3, lambda c: _circle_xy(c, v), ref, np.tile(rad, 2), r)
+            goal = -start
+            angles[i], noises[i] = angle, (nx, ny)
+        else:
+            sign = -1 if u.take(1)[0] > 0.5 else 1
+            _, start = _first_free(u, 2, partial(_square_xy, sign=sign), np.array(placed_s), rad, r)
+            _, goal = _first_free(u, 2, partial(_square_xy, sign=-sign), np.array(placed_g), rad, r)
+            signs[i] = sign
+        starts[i], goals[i] = start, goal
+        placed_s.append(start)
+        placed_g.append(goal)
+        radii.append(r)
+    out = {"robot_start": robot_start, "robot_goal": robot_goal, "robot_theta": f.robot_theta, "case": case,
+           "phase": phase, "scenario": scen, "human_start": starts, "human_goal": goals,
+           "human_radius": np.full(n, r), "human_v_pref": np.full(n, v), "seed": seed, "n_draws": u.used}
+    out.update({"human_angle": angles, "human_noise": noises} if scen == "circle" else {"human_sign": signs})
+    return out
+
+
+class _Draws:
+    """CrowdNav's uniform draws, taken in blocks: ``random_sample(k)`` gives the same doubles in the
+    same order as ``k`` calls of ``random_sample()``, so a block read ahead changes nothing."""
+
+    def __init__(self, rng: np.random.RandomState):
+        self.rng, self.buf, self.pos, self.used = rng, np.empty(0), 0, 0
+
+    def peek(self, k: int) -> np.ndarray:
+        if self.pos + k > self.buf.size:
+            self.buf = np.concatenate((self.buf[self.pos:], self.rng.random_sample(max(k, 1024))))
+            self.pos = 0
+        return self.buf[self.pos:self.pos + k]
+
+    def take(self, k: int) -> np.ndarray:
+        out = self.peek(k)
+        self.pos += k
+        self.used += k
+        return out
+
+
+# candidate position from its draws, with CrowdNav's scalar operations in CrowdNav's order
+def _circle_xy(d, v_pref: float) -> tuple[float, float]:
+    angle = d[0] * np.pi * 2
+    return CROWDNAV.circle_radius * np.cos(angle) + (d[1] - 0.5) * v_pref, \
+        CROWDNAV.circle_radius * np.sin(angle) + (d[2] - 0.5) * v_pref
+
+
+def _square_xy(d, sign: int) -> tuple[float, float]:
+    return d[0] * CROWDNAV.square_width * 0.5 * sign, (d[1] - 0.5) * CROWDNAV.square_width
+
+
+BLOCKS = (4, 16, 64, 256)  # candidates tested together, growing while a human's candidates are refused
+MARGIN = 1e-9  # m: decisions this close to the threshold are re-made with CrowdNav's own scalar test
+
+
+def _first_free(u: _Draws, width: int, xy, others: np.ndarray, radii: np.ndarray, radius: float):
+    """Consume the draws of CrowdNav's rejection loop up to its first accepted candidate; return that
+    candidate's draws (the angle, not the first draw, for circle crossing) and its position.
+
+    Blocks of candidates are placed with array operations and tested against every agent at once; only
+    a candidate within ``MARGIN`` of a threshold is decided again by :func:`_too_close` (a norm in
+    another summation order may differ in the last bit), and the accepted candidate is recomputed with
+    CrowdNav's scalar operations, so values and decisions are CrowdNav's."""
+    thr = radius + radii + CROWDNAV.discomfort_dist
+    for tries in itertools.count():
+        block = BLOCKS[min(tries, len(BLOCKS) - 1)]
+        d = u.peek(block * width).reshape(block, width)
+        cx, cy = xy(d.T)
+        low = (np.hypot(cx[:, None] - others[:, 0], cy[:, None] - others[:, 1]) - thr).min(1)
+        for j in np.flatnonzero(low >= -MARGIN):  # the others are certainly too close
+            px, py = xy([float(x) for x in d[j]])
+            if low[j] <= MARGIN and _too_close(px, py, [(*o, rr) for o, rr in zip(others, radii)], radius,
+                                               CROWDNAV.discomfort_dist):
+                continue
+            u.take((j + 1) * width)
+            first = d[j, 0] * np.pi * 2 if width == 3 else d[j, 0]
+            return (first, *((d[j, 1:] - 0.5) * CROWDNAV.human_v_pref)), np.array([px, py])
+        u.take(block * width)
+
+
+def reference_case(
+    case: int,
+    scenario: str = "circle",
+    n_humans: int = 5,
+    phase: str = "test",
+    *,
+    randomize_attributes: bool = False,
+) -> dict:
+    """:func:`crowdnav_case` one candidate at a time, CrowdNav's loop transcribed: the reference the
+    batched path is tested against, and the path of ``randomize_attributes``."""
     f = CROWDNAV
     phase = _phase(phase)
     scen = _scenario(scenario)
