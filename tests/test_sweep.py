@@ -110,3 +110,19 @@ def test_summary_groups_seeds_and_reports_unfinished_runs(tmp_path):
     assert s["failed"] == [{"job": 3, "overrides": ["method=b", "seed=1"],
                             "error": "the run ended without a status (killed?)"}]
     assert "0.600 ± 0.141" in format_summary(s) and "FAILED run 3" in format_summary(s)
+
+
+@pytest.mark.parametrize("address", [None, "auto", "127.0.0.1:6379"])
+def test_ray_launcher_gives_local_cluster_settings_only_without_an_address(address):
+    """ray.init refuses object_store_memory when joining a cluster (the README's `init.address=auto`)."""
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    import crowdbench.sweep  # noqa: F401 - registers the launcher config's resolver
+    from crowdbench.cli import CONFIG_DIR
+
+    over = ["hydra/launcher=ray"] + ([f"hydra.launcher.ray.init.address={address}"] if address else [])
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base=None):
+        cfg = compose(config_name="config", overrides=over, return_hydra_config=True)
+    init = OmegaConf.to_container(cfg.hydra.launcher.ray.init, resolve=True)
+    assert init["object_store_memory"] == (None if address else 100_000_000)
