@@ -15,7 +15,6 @@ import time
 from pathlib import Path
 
 import pytest
-
 from test_sweep import TINY
 
 pytestmark = pytest.mark.slow
@@ -68,14 +67,16 @@ def nodes_of_tasks(address: str, env: dict, name: str) -> set[str]:
             "for e in state._get_all_task_events():\n"
             f"    if e.task_info.name == {name!r} and e.state_updates.node_id:\n"
             "        print(e.state_updates.node_id.hex())\n")
-    p = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    p = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120,
+                       check=False)
     assert p.returncode == 0, p.stderr[-2000:]
     return set(p.stdout.split())
 
 
 def wait_for_nodes(address: str, env: dict, n: int) -> None:
     for _ in range(60):
-        p = subprocess.run([*RAY, "status", f"--address={address}"], env=env, capture_output=True, text=True)
+        p = subprocess.run([*RAY, "status", f"--address={address}"], env=env, capture_output=True, text=True,
+                           check=False)
         if p.returncode == 0 and p.stdout.count(" node_") >= n:
             return
         time.sleep(1)
@@ -84,7 +85,7 @@ def wait_for_nodes(address: str, env: dict, n: int) -> None:
 
 def crowdbench(args: list[str], env: dict, cwd: Path) -> subprocess.CompletedProcess:
     p = subprocess.run([sys.executable, "-m", "crowdbench.entry", *args], env=env, cwd=cwd, capture_output=True,
-                       text=True, timeout=600)
+                       text=True, timeout=600, check=False)
     assert p.returncode == 0, f"crowdbench {' '.join(args)}: {p.stdout[-2000:]} {p.stderr[-3000:]}"
     return p
 
