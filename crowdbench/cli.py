@@ -8,6 +8,7 @@ from pathlib import Path
 
 from crowdbench import policies
 from crowdbench.cli_eval import (  # the evaluation half of the command line
+    Interrupted,
     UsageError,
     check_config,
     check_protocol_fixed,
@@ -148,6 +149,9 @@ def run_one(cfg, overrides: list[str]) -> dict:
     with claimed_output(out):  # locked until the final evaluation is written; removed if nothing started
         try:
             stats = train(cfg, out, resume=bool(cfg.resume), probe=probe)
+            if stats.get("interrupted"):
+                raise Interrupted(f"interrupted at {stats['frames']:,} frames, checkpoint {out / 'checkpoint.pt'}; "
+                                  f"resume with: {resume_command(overrides, out)}")
             print(f"trained {stats['frames']} frames, {stats['updates']} updates; checkpoint {out / 'checkpoint.pt'}")
             policy = policy_from_checkpoint(out / "checkpoint.pt")
         except ValueError as e:  # CheckpointError included: bad checkpoint, bad algo/replay/logger value
@@ -158,6 +162,14 @@ def run_one(cfg, overrides: list[str]) -> dict:
         if name == "replay":  # trained with other env.reactive values: evaluated on protocol v2's (the probe too)
             return run_eval(policy, cfg, out, overrides, strict=False)
         return {"selfplay": run_selfplay_eval, "crowdnav": run_crowdnav_eval}[name](policy, cfg, out, overrides)
+
+
+def resume_command(overrides: list[str], out: Path) -> str:
+    """The command line that continues the run in ``out`` (the same overrides, ``out=``, ``resume=true``)."""
+    import shlex
+
+    keep = [o for o in overrides if not o.startswith(("out=", "resume=", "-m", "--multirun"))]
+    return shlex.join(["crowdbench", "run", *keep, f"out={out}", "resume=true"])
 
 
 def cmd_leaderboard(args: list[str]) -> int:
@@ -246,7 +258,7 @@ def cmd_leaderboard(args: list[str]) -> int:
     only = [n.strip() for o in a.only for n in o.split(",") if n.strip()] if a.only else None  # names have no commas
     return run(a.root or DEFAULT_ROOT, only, a.check, a.force, a.episodes, scenes, jobs=a.jobs,
                launcher=a.launcher, address=a.address, readme=readme, docs=docs, tracks=tracks, limits=limits,
-               site=a.site, site_figures=a.site_figures)
+               site=a.site, site_figures=a.site_figures, progress=True)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -282,6 +294,9 @@ def main(argv: list[str] | None = None) -> int:
     except UsageError as e:
         print(f"crowdbench: error: {e}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt as e:  # Ctrl-C: one line (a run says how to resume), no traceback
+        print(f"crowdbench: {e}" if isinstance(e, Interrupted) else "crowdbench: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

@@ -115,7 +115,7 @@ def test_two_node_cluster_runs_a_sweep_and_the_leaderboard_on_both_nodes(tmp_pat
         sweep_nodes = nodes_of_tasks(address, env, "_run_job")  # hydra-ray-launcher's task: one per run
         assert len(sweep_nodes) == 2, sweep_nodes
 
-        crowdbench(["submit", "sweep", "--root", "board", "--entry", "tiny TD3"], env, tmp_path)
+        crowdbench(["submit", "sweep", "--root", "board"], env, tmp_path)
         crowdbench(["leaderboard", "--root", "board", "--launcher", "ray", "--address", address,
                     *LEADERBOARD_FAST], env, tmp_path)
         phase["submit+leaderboard"] = time.time() - t0 - sum(phase.values())
