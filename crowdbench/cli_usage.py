@@ -75,14 +75,37 @@ def wants_hydra(overrides: list[str]) -> bool:
     return any(o in HYDRA_FLAGS or o.split("=", 1)[0] in ("--cfg", "--info") for o in overrides)
 
 
+INFO_CHOICES = ("all", "config", "defaults", "defaults-tree", "plugins", "searchpath")
+
+
+def overrides_only(args: list[str]) -> list[str]:
+    """``args`` without Hydra's flags and their values (``--cfg job``, ``--info defaults``, ``-p PKG``)."""
+    out, skip = [], False
+    for i, a in enumerate(args):
+        if skip:
+            skip = False
+            continue
+        if a in ("-c", "--cfg", "-p", "--package"):
+            skip = True
+        elif a in ("-i", "--info"):
+            skip = i + 1 < len(args) and args[i + 1] in INFO_CHOICES
+        elif not a.startswith("-"):
+            out.append(a)
+    return out
+
+
 def hydra_flags(command: str, overrides: list[str]) -> int:
     """``crowdbench run|eval --help / --cfg job / --info ...``: Hydra's answer for this command's config;
     nothing is trained or evaluated (Hydra prints and returns before calling the task)."""
     import hydra
 
-    from crowdbench.cli import normalise
+    from crowdbench.cli import compose, normalise
+    from crowdbench.cli_eval import UsageError
 
     args, what = COMMANDS[command]
+    plain = overrides_only(overrides)
+    if not {"-m", "--multirun"} & set(overrides):  # a sweep's "a,b" values are Hydra's to expand
+        compose(plain)  # a bad key or option: the one-line UsageError, not Hydra's multi-line report
     if {"-h", "--help"} & set(overrides):
         print(f"crowdbench {command} {args}\n  {what}\n")
 
@@ -95,6 +118,8 @@ def hydra_flags(command: str, overrides: list[str]) -> int:
         app()
     except SystemExit as e:  # Hydra exits on a bad override, after printing the error
         return int(e.code or 0) if not isinstance(e.code, str) else 2
+    except ValueError as e:  # e.g. --cfg with -m: "Only one of --run, --multirun, --cfg, ..."
+        raise UsageError(f"{command}: {' '.join(str(e).split())}") from None
     finally:
         sys.argv = argv
     return 0

@@ -40,8 +40,18 @@ def test_hydra_flags_show_the_config_and_run_nothing(command, capsys, tmp_path, 
     assert "Defaults List" in capsys.readouterr().out
     assert main([command, "--help"]) == 0
     assert "Configuration groups" in capsys.readouterr().out
-    assert main([command, "--cfg", "job", "no_such_key=1"]) != 0  # Hydra's own error for a bad override
     assert list(tmp_path.iterdir()) == []  # nothing trained, evaluated or written
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (["--cfg", "job", "encoder=nope"], "crowdbench: error: unknown encoder 'nope'; valid choices: dsrnn,"),
+    (["--cfg", "job", "algo.nokey=1"], "crowdbench: error: unknown config key 'algo.nokey'; valid keys under"),
+    (["-m", "--cfg", "job", "seed=0,1"], "crowdbench: error: run: Only one of --run, --multirun, --cfg"),
+])
+def test_hydra_flags_with_bad_input_give_one_line(args, message, capsys):
+    assert main(["run", *args]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(message) and len(err.strip().splitlines()) == 1
 
 
 def test_usage_lists_every_registered_algorithm_and_encoder(capsys):
