@@ -50,6 +50,7 @@ def test_bad_names_are_one_line_errors():
         api.make_env("selfplay", api="gymnasium")
 
 
+@pytest.mark.filterwarnings("ignore:.*observation space (minimum|maximum) value is:UserWarning")  # positions: unbounded
 def test_gymnasium_ids_and_the_env_checker():
     import gymnasium
     from gymnasium.utils.env_checker import check_env
