@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import json
 import re
 import sys
 from pathlib import Path
 
 from crowdbench import policies
 from crowdbench.cli_eval import (  # the evaluation half of the command line
+    Interrupted,
     UsageError,
     check_config,
     check_protocol_fixed,
@@ -24,6 +24,7 @@ from crowdbench.cli_eval import (  # the evaluation half of the command line
     run_eval,
     run_selfplay_eval,
 )
+from crowdbench.cli_submit import cmd_submit
 
 CONFIG_DIR = Path(__file__).resolve().parent / "conf"
 COMMANDS = ("eval", "run", "leaderboard", "submit", "viz", "plot")
@@ -148,6 +149,9 @@ def run_one(cfg, overrides: list[str]) -> dict:
     with claimed_output(out):  # locked until the final evaluation is written; removed if nothing started
         try:
             stats = train(cfg, out, resume=bool(cfg.resume), probe=probe)
+            if stats.get("interrupted"):
+                raise Interrupted(f"interrupted at {stats['frames']:,} frames, checkpoint {out / 'checkpoint.pt'}; "
+                                  f"resume with: {resume_command(overrides, out)}")
             print(f"trained {stats['frames']} frames, {stats['updates']} updates; checkpoint {out / 'checkpoint.pt'}")
             policy = policy_from_checkpoint(out / "checkpoint.pt")
         except ValueError as e:  # CheckpointError included: bad checkpoint, bad algo/replay/logger value
@@ -158,6 +162,14 @@ def run_one(cfg, overrides: list[str]) -> dict:
         if name == "replay":  # trained with other env.reactive values: evaluated on protocol v2's (the probe too)
             return run_eval(policy, cfg, out, overrides, strict=False)
         return {"selfplay": run_selfplay_eval, "crowdnav": run_crowdnav_eval}[name](policy, cfg, out, overrides)
+
+
+def resume_command(overrides: list[str], out: Path) -> str:
+    """The command line that continues the run in ``out`` (the same overrides, ``out=``, ``resume=true``)."""
+    import shlex
+
+    keep = [o for o in overrides if not o.startswith(("out=", "resume=", "-m", "--multirun"))]
+    return shlex.join(["crowdbench", "run", *keep, f"out={out}", "resume=true"])
 
 
 def cmd_leaderboard(args: list[str]) -> int:
@@ -176,7 +188,8 @@ def cmd_leaderboard(args: list[str]) -> int:
     ap.add_argument("--check", action="store_true", help="re-evaluate everything (no cache, nothing written); "
                     "exit 1 if leaderboard/README.md or a generated block (README, docs) differs from the fresh result")
     ap.add_argument("--force", action="store_true", help="re-evaluate even unchanged submissions")
-    ap.add_argument("--only", action="append", metavar="NAME", help="evaluate only this submission (repeatable); "
+    ap.add_argument("--only", action="append", metavar="NAME", help="evaluate only this submission (repeatable, "
+                    "or comma-separated); "
                     "the others keep their cached results")
     ap.add_argument("--episodes", type=int, default=None, help="N episodes per scene (evenly strided; unofficial)")
     ap.add_argument("--scenes", default=None, help="comma-separated scene subset (unofficial)")
@@ -242,121 +255,33 @@ def cmd_leaderboard(args: list[str]) -> int:
             tracks = check_tracks(t.strip() for t in a.tracks.split(",") if t.strip())
         except ValueError as e:
             ap.error(str(e))
-    return run(a.root or DEFAULT_ROOT, a.only, a.check, a.force, a.episodes, scenes, jobs=a.jobs,
+    only = [n.strip() for o in a.only for n in o.split(",") if n.strip()] if a.only else None  # names have no commas
+    return run(a.root or DEFAULT_ROOT, only, a.check, a.force, a.episodes, scenes, jobs=a.jobs,
                launcher=a.launcher, address=a.address, readme=readme, docs=docs, tracks=tracks, limits=limits,
-               site=a.site, site_figures=a.site_figures)
-
-
-def training_overrides(cfg: dict) -> list[str]:
-    """The run's ``algo``/``encoder``/``env``/``train`` values that differ from the defaults of its
-    algo and encoder, as ``key=value`` overrides (the submission records how it was trained)."""
-    from omegaconf import OmegaConf
-
-    base = OmegaConf.to_container(compose([f"algo={cfg['algo']['name']}", f"encoder={cfg['encoder']['name']}"]))
-    out = [f"algo={cfg['algo']['name']}", f"encoder={cfg['encoder']['name']}"]
-    for group in ("algo", "encoder", "env", "train"):
-        for key, value in cfg[group].items():
-            if base[group].get(key) != value and key not in ("max_minutes", "save_buffer"):
-                out.append(f"{group}.{key}={value}")
-    return [*out, f"seed={cfg['seed']}"]
-
-
-def cmd_submit(args: list[str]) -> int:
-    """Turn a training run, or every finished run of a sweep, into leaderboard submissions (slim
-    checkpoint + submission.yaml)."""
-    import argparse
-
-    from crowdbench.leaderboard import DEFAULT_ROOT
-
-    ap = argparse.ArgumentParser(prog="crowdbench submit",
-                                 description="Make leaderboard/submissions/NAME from a run directory, or one "
-                                             "submission per finished run of a sweep directory.")
-    ap.add_argument("run", type=Path, help="run directory (holds checkpoint.pt) or sweep directory (multirun.yaml)")
-    ap.add_argument("--name", default=None, help="submission name (default: the run's submission.name)")
-    ap.add_argument("--entry", default=None, help="row label; seeds of one method share it "
-                                                   "(default: the run's submission.entry, set by method=...)")
-    ap.add_argument("--authors", default="crowdbench", help="comma-separated author names")
-    ap.add_argument("--link", default=None)
-    ap.add_argument("--notes", default=None)
-    ap.add_argument("--root", type=Path, default=DEFAULT_ROOT)
-    a = ap.parse_args(args)
-    authors = [x.strip() for x in a.authors.split(",") if x.strip()]
-    if not (a.run / "multirun.yaml").is_file():
-        path = submit_run(a.run, a.name, a.entry, authors, a.link, a.notes, a.root, None)
-        print(f"wrote {path}; evaluate it with: crowdbench leaderboard --only {path.name}")
-        return 0
-    if a.name:
-        raise UsageError("submit: --name names one run; the runs of a sweep are named by their config "
-                         "(submission.name, e.g. gatedgcn_td3_s0)")
-    from crowdbench.sweep import STATUS
-
-    runs = sorted((d for d in a.run.iterdir() if d.is_dir() and d.name.isdigit()), key=lambda d: int(d.name))
-    if not runs:
-        raise UsageError(f"submit: {a.run} holds no runs")
-    written, problems = [], 0
-    for d in runs:
-        status = json.loads((d / STATUS).read_text()) if (d / STATUS).is_file() else {}
-        if status.get("status") != "ok":
-            print(f"crowdbench: run {d} did not finish ({status.get('error', 'no status.json')}): not submitted",
-                  file=sys.stderr)
-            problems += 1
-            continue
-        try:
-            written.append(submit_run(d, None, a.entry, authors, a.link, a.notes, a.root, status["overrides"]))
-        except UsageError as e:
-            print(f"crowdbench: error: {e}", file=sys.stderr)
-            problems += 1
-    names = " ".join(p.name for p in written)
-    print(f"wrote {len(written)} submissions under {a.root / 'submissions'}" +
-          (f"; evaluate them with: crowdbench leaderboard --only {names.replace(' ', ',')}" if written else ""))
-    return 1 if problems else 0
-
-
-def submit_run(run: Path, name: str | None, entry: str | None, authors: list[str], link: str | None,
-               notes: str | None, root: Path, overrides: list[str] | None) -> Path:
-    """One run -> ``root/submissions/<name>``; name, row label and experiment default to the run's
-    ``submission.*`` config; ``overrides``: the command-line overrides of a sweep's run (else derived)."""
-    from crowdbench.algos.checkpoint import CheckpointError, load_checkpoint
-    from crowdbench.leaderboard import SubmissionError, make_submission
-
-    try:
-        cfg = load_checkpoint(run / "checkpoint.pt")["config"]
-        meta = cfg.get("submission") or {}
-        name, entry = name or meta.get("name"), entry or meta.get("entry")
-        if not name or not entry:
-            missing = "--name" if not name else "--entry"
-            raise UsageError(f"submit: {run} has no submission.{missing[2:]} in its config (train it with "
-                             f"method=... or an experiment), pass {missing}")
-        overrides = list(overrides) if overrides is not None else training_overrides(cfg)
-        if not any(o.startswith("seed=") for o in overrides):
-            overrides.append(f"seed={cfg['seed']}")
-        notes = notes or f"crowdbench run {' '.join(overrides)}"
-        return make_submission(run, name, entry, authors, overrides, link, notes, root,
-                               experiment=meta.get("experiment"))
-    except (CheckpointError, SubmissionError, KeyError) as e:
-        raise UsageError(f"submit: {e}") from None
+               site=a.site, site_figures=a.site_figures, progress=True)
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help"):
-        print("usage: crowdbench {eval,run,leaderboard,submit,viz,plot} [key=value ...]\n"
-              "  crowdbench eval policy=orca|straight|oracle|<checkpoint.pt> [eval.scenes=[eth,hotel]] [eval.episodes=N] "
-              "[eval.save_episodes=true] [out=DIR]\n"
-              "  crowdbench run algo=td3|ddpg|sac encoder=gatedgcn|gcn|mlp [train.total_frames=N] [seed=S] "
-              "[out=DIR] [resume=true]\n"
-              "  crowdbench eval|run ... viz.record=true [viz.episodes=[0,5]] [viz.scenes=[students003]]\n"
-              "  crowdbench run|eval env=selfplay [env.n_agents=N] [env.scenario=circle|square|mixed] ...  (docs/selfplay.md)\n"
-              "  crowdbench leaderboard [--check] [--force] [--only NAME] [--episodes N] [--scenes a,b] [--jobs N]\n"
-              "      [--launcher local|ray] [--address ADDR] [--root DIR] [--readme FILE] [--docs FILE] [--site DIR]\n"
-              "  crowdbench submit <run dir> --name NAME --entry LABEL [--authors A,B] [--link URL] [--root DIR]\n"
-              "  crowdbench viz <episodes.jsonl|results dir> [--episode N] [--scene S] [--grid K] [--out FILE.png]\n"
-              "  crowdbench plot <run dir> [<run dir> ...] [--out FILE.png] [--smooth N]")
+        from crowdbench.cli_usage import usage
+
+        print(usage())
+        return 0
+    if argv[0] in ("-V", "--version"):
+        from crowdbench.cli_usage import version
+
+        print(version())
         return 0
     command, overrides = argv[0], argv[1:]
     try:
         if command not in COMMANDS:
             raise UsageError(f"unknown command {command!r}; valid commands: {', '.join(COMMANDS)}")
+        if command in ("run", "eval"):
+            from crowdbench.cli_usage import hydra_flags, wants_hydra
+
+            if wants_hydra(overrides):
+                return hydra_flags(command, overrides)
         if command in ("viz", "plot"):
             from crowdbench.viz.figures import main as viz_main
 
@@ -369,6 +294,9 @@ def main(argv: list[str] | None = None) -> int:
     except UsageError as e:
         print(f"crowdbench: error: {e}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt as e:  # Ctrl-C: one line (a run says how to resume), no traceback
+        print(f"crowdbench: {e}" if isinstance(e, Interrupted) else "crowdbench: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

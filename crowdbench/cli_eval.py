@@ -15,6 +15,11 @@ class UsageError(Exception):
     """Bad input from the user: printed as one line, exit code 2."""
 
 
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C stopped a run at a checkpoint: printed as one line (how to resume), exit code 130. A
+    KeyboardInterrupt, so that a sweep stops too instead of recording one failed run and going on."""
+
+
 def check_config(cfg) -> None:
     """The composed config against its schemas (crowdbench/config_schema.py: types and bounds)."""
     from crowdbench.config_check import validate
@@ -146,9 +151,10 @@ def run_eval(policy, cfg, out: Path, overrides: list[str], strict: bool = True) 
     humans = protocol_humans(cfg, strict)
     try:
         check_replay("v2" if humans else "v1", scenes)  # the published lists, not look-alikes
-        results = evaluate(policy, scenes, episodes, out_dir=out, save_episodes=bool(cfg.eval.save_episodes),
-                           sim_overrides=sim, meta={"seed": cfg.seed, "overrides": overrides},
-                           recorder_factory=recorders, humans=humans)
+        with progress_bar(policy.name, scenes, SimConfig(**sim).time_limit, recorders) as recorders_and_bar:
+            results = evaluate(policy, scenes, episodes, out_dir=out, save_episodes=bool(cfg.eval.save_episodes),
+                               sim_overrides=sim, meta={"seed": cfg.seed, "overrides": overrides},
+                               recorder_factory=recorders_and_bar, humans=humans)
     except ValueError as e:  # e.g. the oracle on protocol v2, a list that is not the published one
         raise UsageError(str(e)) from None
     except OSError as e:
@@ -156,6 +162,49 @@ def run_eval(policy, cfg, out: Path, overrides: list[str], strict: bool = True) 
     print(format_table(results))
     print(f"results written to {out / 'results.json'}")
     return results
+
+
+class StepTicker:
+    """A recorder for :func:`crowdbench.eval.drive` that advances a progress bar by one per time step and
+    passes every call on to the scene's viz recorder, if any. It reads nothing and changes nothing, so the
+    evaluation (and crowdbench/eval.py, hashed into the leaderboard's cache) is untouched."""
+
+    def __init__(self, bar, end: int, inner=None):
+        self.bar, self.end, self.inner = bar, end, inner
+
+    def __call__(self, world, obs, action) -> None:
+        self.bar.update(1)
+        if self.inner is not None:
+            self.inner(world, obs, action)
+
+    def after_step(self, world, info) -> None:
+        if self.inner is not None and hasattr(self.inner, "after_step"):
+            self.inner.after_step(world, info)
+
+    def close(self) -> None:
+        self.bar.update(self.end - self.bar.n)  # the scene's episodes may all end before the time limit
+        if self.inner is not None and hasattr(self.inner, "close"):
+            self.inner.close()
+
+
+@contextlib.contextmanager
+def progress_bar(name: str, scenes: list[str], steps: int, inner_factory=None):
+    """A progress bar on stderr over ``scenes`` x ``steps`` time steps; yields the recorder factory
+    :func:`crowdbench.eval.evaluate` takes (wrapping ``inner_factory``, the viz recordings)."""
+    from tqdm import tqdm
+
+    bar = tqdm(total=len(scenes) * steps, unit="step", desc=f"eval {name}", dynamic_ncols=True)
+    done = {"scenes": 0}
+
+    def factory(scene: str):
+        bar.set_postfix_str(scene)
+        done["scenes"] += 1
+        return StepTicker(bar, done["scenes"] * steps, inner_factory(scene) if inner_factory else None)
+
+    try:
+        yield factory
+    finally:
+        bar.close()
 
 
 def recorder_factory(policy, cfg, out: Path, scenes: list[str]):

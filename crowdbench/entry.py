@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import os
 import sys
 
 EVALUATING = ("eval", "leaderboard")  # commands whose numbers are official (crowdbench/numerics.py)
 
 
 def main() -> int:
+    # TorchRL's INFO lines and DeprecationWarnings are for its developers; RL_WARNINGS=1 or
+    # RL_LOGGING_LEVEL=INFO in the environment bring them back
+    os.environ.setdefault("RL_WARNINGS", "0")
+    os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")
     if sys.argv[1:2] and sys.argv[1] in EVALUATING:
         from crowdbench.numerics import pin
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import sys
 import time
 import traceback
@@ -23,6 +24,18 @@ from omegaconf import DictConfig, OmegaConf
 
 STATUS = "status.json"
 SUMMARY = "sweep.json"
+
+
+def _local_only(address, value):
+    """``${crowdbench_local_only:ADDRESS,VALUE}`` (conf/hydra/launcher/ray.yaml): ``VALUE`` when Ray starts a
+    local cluster, null when it joins one (``ADDRESS`` or ``RAY_ADDRESS`` set): ``ray.init`` rejects
+    local-cluster settings such as ``object_store_memory`` when connecting to an existing cluster."""
+    return None if address or os.environ.get("RAY_ADDRESS") else value
+
+
+# registered at import: the launching process imports this module before Hydra composes the launcher
+if not OmegaConf.has_resolver("crowdbench_local_only"):
+    OmegaConf.register_new_resolver("crowdbench_local_only", _local_only)
 
 
 def task(cfg: DictConfig) -> dict:
@@ -140,13 +153,15 @@ def multirun(overrides: list[str]) -> int:
     overrides = normalise(overrides)
     sweep_dir = next((o.split("=", 1)[1] for o in overrides if o.startswith("hydra.sweep.dir=")), None)
     outs = [o for o in overrides if o.startswith("out=")]
-    overrides = [o for o in overrides if not o.startswith("out=")]
     if outs:
         sweep_dir = outs[-1].split("=", 1)[1]
-        overrides.append(f"hydra.sweep.dir={sweep_dir}")
     if sweep_dir is None:
         sweep_dir = f"outputs/sweep-{time.strftime('%Y%m%d-%H%M%S')}"
-        overrides.append(f"hydra.sweep.dir={sweep_dir}")
+    # absolute: a run on a Ray node resolves a relative directory against its worker's directory
+    sweep_dir = str(Path(sweep_dir).absolute())
+    overrides = [o for o in overrides if not o.startswith(("out=", "hydra.sweep.dir="))]
+    quoted = sweep_dir.replace("\\", "\\\\").replace("'", "\\'")  # Hydra's override grammar: any path
+    overrides.append(f"hydra.sweep.dir='{quoted}'")
     if (Path(sweep_dir) / SUMMARY).exists():
         print(f"crowdbench: error: {sweep_dir} already holds a finished sweep ({SUMMARY}); choose another out=",
               file=sys.stderr)
@@ -162,4 +177,5 @@ def multirun(overrides: list[str]) -> int:
     summary_file = Path(sweep_dir) / SUMMARY
     if not summary_file.is_file():
         return 1
-    return 1 if json.loads(summary_file.read_text())["failed"] else 0
+    summary = json.loads(summary_file.read_text())
+    return 1 if summary["failed"] or not summary["runs"] else 0

@@ -120,8 +120,11 @@ OUTPUT_PREFIXES = ("outputs/", "OUT/", "RUN/", "DIR/", "SWEEP_DIR/", "runs/")
 PATH = re.compile(r"(?<![\w./-])((?:crowdbench|docs|benchmarks)/[\w./*{},-]*[\w*}])")
 
 
+GYM_ID = re.compile(r"^crowdbench/\w+-v\d+$")  # a Gymnasium env id (crowdbench/CrowdNav-v0), not a path
+
+
 def mentioned_paths(text: str) -> set[str]:
-    return {m.group(1) for m in PATH.finditer(text)}
+    return {m.group(1) for m in PATH.finditer(text) if not GYM_ID.match(m.group(1))}
 
 
 def expand(path: str) -> list[str]:

@@ -32,6 +32,8 @@ SELFPLAY = ["env.batch=4", "train.frames_per_batch=32", "algo.warmup=64", "algo.
 
 # README command -> invocations, in order (later ones use the directories earlier ones wrote: {run} ...)
 INVOCATIONS: dict[str, list[list[str]]] = {
+    "crowdbench --version": [["--version"]],
+    "crowdbench run --help": [["run", "--help"], ["run", "--help", "--cfg", "job"]],  # every command: tests/test_cli_help.py
     "crowdbench eval policy=orca": [["eval", "policy=orca", *EVAL]],
     "crowdbench eval policy=straight": [["eval", "policy=straight", *EVAL]],
     "crowdbench eval policy=oracle": [["eval", "policy=oracle", *EVAL]],

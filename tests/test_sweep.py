@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import statistics
 import subprocess
 import sys
@@ -88,10 +89,44 @@ def test_submit_turns_each_finished_run_into_a_submission(basic_sweep, tmp_path)
     for seed in (0, 1):
         sub = yaml.safe_load((tmp_path / "submissions" / f"gatedgcn_td3_s{seed}" / "submission.yaml").read_text())
         assert sub["entry"] == "tiny TD3" and sub["seed"] == seed and f"seed={seed}" in sub["overrides"]
+    assert f"crowdbench leaderboard --root {tmp_path} --only gatedgcn_td3_s0,gatedgcn_td3_s1" in p.stdout
     again = crowdbench("submit", str(basic_sweep), "--root", str(tmp_path), "--entry", "tiny TD3", cwd=tmp_path)
-    assert again.returncode == 1 and "already exists" in again.stderr  # nothing saved is replaced
-    named = crowdbench("submit", str(basic_sweep), "--name", "x", "--entry", "e", "--root", str(tmp_path), cwd=tmp_path)
-    assert named.returncode == 2 and "--name names one run" in named.stderr
+    assert again.returncode == 0, again.stderr  # nothing saved is replaced or joined: a second version
+    assert {"gatedgcn_td3_v2_s0", "gatedgcn_td3_v2_s1"} <= {d.name for d in (tmp_path / "submissions").iterdir()}
+    sub = yaml.safe_load((tmp_path / "submissions" / "gatedgcn_td3_v2_s1" / "submission.yaml").read_text())
+    assert sub["entry"] == "tiny TD3 #2"
+    named = crowdbench("submit", str(basic_sweep), "--name", "mine", "--root", str(tmp_path), cwd=tmp_path)
+    assert named.returncode == 0, named.stderr
+    sub = yaml.safe_load((tmp_path / "submissions" / "mine_s0" / "submission.yaml").read_text())
+    assert sub["entry"] == "gatedgcn_td3 (sweep)"  # the method and the sweep: no shipped row has it
+
+
+def test_submit_of_a_plain_sweep_then_the_leaderboard(basic_sweep, tmp_path):
+    """No --entry: names and labels from the sweep, never those of shipped submissions."""
+    shipped = tmp_path / "submissions" / "gatedgcn_td3_s0"
+    shipped.mkdir(parents=True)  # a name the defaults would take
+    (shipped / "submission.yaml").write_text("name: gatedgcn_td3_s0\nentry: gatedgcn_td3 (sweep)\n")
+    p = crowdbench("submit", str(basic_sweep), "--root", str(tmp_path), cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    assert (shipped / "submission.yaml").read_text().startswith("name: gatedgcn_td3_s0\nentry")  # untouched
+    subs = {n: yaml.safe_load((tmp_path / "submissions" / n / "submission.yaml").read_text())
+            for n in ("gatedgcn_td3_v2_s0", "gatedgcn_td3_v2_s1")}
+    assert {s["entry"] for s in subs.values()} == {"gatedgcn_td3 (sweep) #2"}  # one row, both seeds
+    command = p.stdout.split("evaluate them with: ")[1].split()
+    assert command[:4] == ["crowdbench", "leaderboard", "--root", str(tmp_path)]
+    shutil.rmtree(shipped)  # not a real submission: the leaderboard would reject it
+    board = crowdbench(*command[1:], "--episodes", "1", "--scenes", "hotel", "--tracks", "v1", cwd=tmp_path)
+    assert board.returncode == 0, board.stderr[-2000:]
+    assert "gatedgcn_td3 (sweep) #2" in (tmp_path / "README.md").read_text()
+    assert (tmp_path / "results" / "gatedgcn_td3_v2_s1" / "results.json").is_file()
+
+
+def test_submit_names_each_configuration_of_a_sweep_apart():
+    from crowdbench.cli_submit import slug, varied
+
+    common = {"train.total_frames=256", "seed=0"}
+    assert varied(["encoder.dim=8", "train.total_frames=256", "seed=1", "encoder=gcn"], common) == ["encoder.dim=8"]
+    assert slug(["encoder.dim=8", "eval.scenes=[hotel,eth]"]) == "dim8_scenes_hotel_eth"
 
 
 def test_summary_groups_seeds_and_reports_unfinished_runs(tmp_path):
@@ -110,3 +145,19 @@ def test_summary_groups_seeds_and_reports_unfinished_runs(tmp_path):
     assert s["failed"] == [{"job": 3, "overrides": ["method=b", "seed=1"],
                             "error": "the run ended without a status (killed?)"}]
     assert "0.600 ± 0.141" in format_summary(s) and "FAILED run 3" in format_summary(s)
+
+
+@pytest.mark.parametrize("address", [None, "auto", "127.0.0.1:6379"])
+def test_ray_launcher_gives_local_cluster_settings_only_without_an_address(address):
+    """ray.init refuses object_store_memory when joining a cluster (the README's `init.address=auto`)."""
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    import crowdbench.sweep  # noqa: F401 - registers the launcher config's resolver
+    from crowdbench.cli import CONFIG_DIR
+
+    over = ["hydra/launcher=ray"] + ([f"hydra.launcher.ray.init.address={address}"] if address else [])
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base=None):
+        cfg = compose(config_name="config", overrides=over, return_hydra_config=True)
+    init = OmegaConf.to_container(cfg.hydra.launcher.ray.init, resolve=True)
+    assert init["object_store_memory"] == (None if address else 100_000_000)

@@ -9,6 +9,7 @@ scenes, checkpoints, and resumes from a checkpoint as if it had never stopped.
 
 from __future__ import annotations
 
+import signal
 import time
 from pathlib import Path
 
@@ -53,7 +54,9 @@ def make_logger(kind: str, out_dir: Path):
 
 class DurationEstimate:
     """Prints the run's budget, then, after the second batch with updates, its expected duration:
-    measured seconds per collected frame and per update x what remains of each. Timing only: no RNG."""
+    measured seconds per collected frame and per update x what remains of each; :meth:`remaining_s` gives
+    the same estimate for the progress bar at every batch. The random warm-up is not timed: it acts ~15x
+    faster than the policy, and a rate that includes it promises an early end. Timing only: no RNG."""
 
     def __init__(self, frames: int, updates: int, write):
         self.frames, self.write, self.updates = frames, write, updates
@@ -78,13 +81,49 @@ class DurationEstimate:
         self.t = now
         if self.update_batches == 2:  # once; the first batch pays one-off allocations
             per_frame, per_update = self.frame_s / self.n_frames, self.update_s / self.n_updates
-            left = (self.frames - self.seen) * per_frame + max(0, self.updates - self.n_updates) * per_update
-            self.write(f"expected duration: ~{left / 60:.0f} min more ({1 / per_frame:,.0f} frames/s collecting, "
-                       f"{1 / per_update:,.1f} updates/s on {torch.get_num_threads()} thread(s)), "
+            self.write(f"expected duration: ~{self.remaining_s() / 60:.0f} min more ({1 / per_frame:,.0f} frames/s "
+                       f"collecting, {1 / per_update:,.1f} updates/s on {torch.get_num_threads()} thread(s)), "
                        "plus the final evaluation")
+
+    def remaining_s(self) -> float | None:
+        """Seconds of training left at the measured post-warm-up rates; None before they are measured."""
+        if self.update_batches < 2 or not self.n_frames:
+            return None
+        per_frame, per_update = self.frame_s / self.n_frames, self.update_s / self.n_updates
+        return (self.frames - self.seen) * per_frame + max(0, self.updates - self.n_updates) * per_update
+
+    def postfix(self) -> str:
+        left = self.remaining_s()
+        return "warm-up" if left is None else tqdm.format_interval(left)
 
     def lap(self) -> None:
         self.collected(0)
+
+
+class StopRequest:
+    """Ctrl-C (SIGINT) during training asks the loop to stop after the current batch and checkpoint there,
+    so that ``resume=true`` continues exactly; a second Ctrl-C stops at once (no checkpoint). Outside the
+    main thread (e.g. a Ray task) signals cannot be caught and the default applies."""
+
+    def __init__(self, write):
+        self.write, self.requested, self.previous = write, False, None
+
+    def install(self) -> StopRequest:
+        try:
+            self.previous = signal.signal(signal.SIGINT, self._handle)
+        except ValueError:  # not the main thread
+            self.previous = None
+        return self
+
+    def _handle(self, signum, frame) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+        self.write("Ctrl-C: stopping after this batch with a checkpoint (Ctrl-C again: stop now, without one)")
+
+    def restore(self) -> None:
+        if self.previous is not None:
+            signal.signal(signal.SIGINT, self.previous)
 
 
 def check_budget(t: DictConfig) -> None:
@@ -208,7 +247,10 @@ def _train(cfg: DictConfig, out_dir: Path, resume: bool, progress: bool, probe) 
                                   f"{e.strerror or e} ({e.filename or ckpt_path}){kept}") from None
         algo.after_save(out_dir, extra)
 
-    bar = tqdm(total=t.total_frames, initial=frames, disable=not progress, unit="frame", dynamic_ncols=True)
+    # tqdm's own remaining time would come from a rate that includes the warm-up: the estimate's instead
+    bar = tqdm(total=t.total_frames, initial=frames, disable=not progress, unit="frame", dynamic_ncols=True,
+               bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}{postfix}]")  # postfix: ", eta ..."
+    stop = StopRequest(bar.write if progress else print).install()  # before the budget line: Ctrl-C is safe
     # a resumed run refills warm-up frames too
     eta = DurationEstimate(remaining, algo.expected_updates(remaining), bar.write)
     last_ckpt, start = frames, time.time()
@@ -240,17 +282,19 @@ def _train(cfg: DictConfig, out_dir: Path, resume: bool, progress: bool, probe) 
             for k, v in logs.items():
                 logger.log_scalar(k, v, step=frames)
             bar.update(batch.numel())
-            bar.set_postfix({k: f"{v:.2f}" for k, v in stats.items()} | {"upd": algo.updates})
+            bar.set_postfix_str(", ".join([f"eta {eta.postfix()}", *(f"{k}={v:.2f}" for k, v in stats.items()),
+                                           f"upd={algo.updates}"]))
             if frames - last_ckpt >= t.checkpoint_every:
                 save(wall)
                 last_ckpt = frames
-            if t.max_minutes and wall >= 60 * t.max_minutes:
+            if (t.max_minutes and wall >= 60 * t.max_minutes) or stop.requested:
                 break
         save(wall)
     except OSError as e:  # e.g. the logs' directory made read-only: one line, the last checkpoint stays
         raise CheckpointError(f"cannot write {e.filename or out_dir}: {e.strerror or e}; the last checkpoint "
                               f"({ckpt_path}) is kept") from None
     finally:
+        stop.restore()
         bar.close()
         collector.shutdown()
-    return {"frames": frames, "updates": algo.updates, **stats}
+    return {"frames": frames, "updates": algo.updates, **stats, **({"interrupted": True} if stop.requested else {})}

@@ -10,8 +10,11 @@ docs) and ``leaderboard/TRACKS.md`` (every track, and the transfer table).
 from __future__ import annotations
 
 import json
+import sys
 import time
 from pathlib import Path
+
+from tqdm import tqdm
 
 from crowdbench.envs.protocol import EVAL_SCENES, PROTOCOL_VERSION
 from crowdbench.fixed_lists import ListError, check_replay
@@ -65,11 +68,16 @@ def _scene_problem(scenes: list[str]) -> str | None:
     return None
 
 
+def _print(msg: str) -> None:
+    tqdm.write(msg, file=sys.stdout)  # above the progress bar, if any
+    sys.stdout.flush()
+
+
 def run(root: Path = DEFAULT_ROOT, only: list[str] | None = None, check: bool = False, force: bool = False,
         episodes: int | None = None, scenes: list[str] | None = None, log=None, jobs: int = 1,
         launcher: str = "local", address: str | None = None, readme: Path | None = None,
         docs: list[Path] | None = None, tracks: list[str] | None = None, limits: Limits = DEFAULT_LIMITS,
-        site: Path | None = None, site_figures: int = 2) -> int:
+        site: Path | None = None, site_figures: int = 2, progress: bool = False) -> int:
     """Validate, evaluate and render; returns the exit code (0 ok, 1 a submission failed or --check differs).
 
     ``tracks``: the tracks evaluated (default all; the others keep their cached results, and ``--check``
@@ -78,9 +86,10 @@ def run(root: Path = DEFAULT_ROOT, only: list[str] | None = None, check: bool = 
     regenerated too (None: no other file is touched). Both are protocol v1's. ``limits``: the bounds
     and the sandbox of the learned submissions' worker processes (crowdbench/leaderboard/sandbox.py).
     ``site``: also write the web site into this directory from the same results (not with ``check``;
-    crowdbench/leaderboard/site.py), with ``site_figures`` episodes per entry for its figures."""
+    crowdbench/leaderboard/site.py), with ``site_figures`` episodes per entry for its figures.
+    ``progress``: a progress bar on stderr over the (submission, track) evaluations."""
     root = Path(root)
-    log = log or (lambda msg: print(msg, flush=True))
+    log = log or _print
     scenes = list(scenes or EVAL_SCENES)
     try:
         tracks = check_tracks(tracks)
@@ -148,14 +157,20 @@ def run(root: Path = DEFAULT_ROOT, only: list[str] | None = None, check: bool = 
         log(f"learned submissions run in worker processes ({'confined by bubblewrap' if sandbox == 'bubblewrap' else 'not confined: no usable bwrap'}"
             f"; {limits.memory_gb:g} GB, {limits.cpu_s} s CPU, {limits.step_s:g} s per step)")
     outcomes = _evaluate_all(todo, scenes, episodes, jobs, launcher, address, limits)
+    bar = tqdm(total=len(todo), disable=not progress or not todo, unit="evaluation", desc="leaderboard",
+               dynamic_ncols=True, file=sys.stderr)
     while True:
+        if bar.n < len(todo):  # the evaluation waited for next (in order; with --jobs / Ray others run too)
+            bar.set_postfix_str(f"{todo[bar.n][0].name} on {todo[bar.n][2]}")
         try:
             d, sub, name, res_path, outcome = next(outcomes)
         except StopIteration:
             break
         except LauncherError as e:
+            bar.close()
             log(f"crowdbench leaderboard: error: {e}")
             return 1
+        bar.update(1)
         if isinstance(outcome, SubmissionError):
             reject(outcome, name)
             continue
@@ -172,6 +187,7 @@ def run(root: Path = DEFAULT_ROOT, only: list[str] | None = None, check: bool = 
                 (res_path.parent / "unavoidable.json").write_text(json.dumps(
                     {"privileged": True, "note": "episodes the privileged oracle fails: candidate unavoidable",
                      "protocol": PROTOCOL_VERSION, "scenes": res["unavoidable"]}, indent=1) + "\n")
+    bar.close()
     failed = bool(rejected)
     v1 = [r for r in results["v1"] if trained_on(r) in (None, "v1")]
     v1_rejected = sorted(m for t, m in rejected if t in (None, "v1"))

@@ -205,13 +205,13 @@ def _save(fig, out: Path, dpi: int = 120, rect=(0, 0, 1, 1)) -> Path:
 
 
 def viz_command(argv: list[str]) -> Path:
-    p = _Parser(prog="crowdbench viz", add_help=False)
-    p.add_argument("path")
-    p.add_argument("--episode", type=int, default=None)
-    p.add_argument("--scene", default=None)
-    p.add_argument("--grid", type=int, default=None)
-    p.add_argument("--mark-every", type=float, default=2.0)
-    p.add_argument("--out", default=None)
+    p = _Parser(prog="crowdbench viz", description="A figure of recorded episodes (paper Fig. 6 style).")
+    p.add_argument("path", help="an episodes.jsonl, or the results directory holding it (eval.save_episodes=true)")
+    p.add_argument("--episode", type=int, default=None, help="episode id (default: the scene's first)")
+    p.add_argument("--scene", default=None, help="scene (default: the file's first)")
+    p.add_argument("--grid", type=int, default=None, metavar="K", help="the scene's first K episodes in one figure")
+    p.add_argument("--mark-every", type=float, default=2.0, metavar="S", help="time marks every S seconds")
+    p.add_argument("--out", default=None, metavar="FILE.png", help="default: <results dir>/viz/<scene>_ep<id>.png")
     a = p.parse_args(argv)
     if a.grid is not None and a.grid < 1:
         raise ValueError(f"--grid must be >= 1, got {a.grid}")
@@ -387,9 +387,9 @@ def plot_runs(runs: list[Path], out: Path, n_smooth: int = 20) -> Path:
 
 
 def plot_command(argv: list[str]) -> Path:
-    p = _Parser(prog="crowdbench plot", add_help=False)
-    p.add_argument("runs", nargs="+")
-    p.add_argument("--out", default=None)
+    p = _Parser(prog="crowdbench plot", description="Training curves of runs (success, collision, return, losses).")
+    p.add_argument("runs", nargs="+", metavar="RUN", help="run directories (RUN/logs/scalars/*.csv)")
+    p.add_argument("--out", default=None, metavar="FILE.png", help="default: <first RUN>/curves.png")
     p.add_argument("--smooth", type=int, default=20, help="moving average over N logged points (N >= 1)")
     a = p.parse_args(argv)
     if a.smooth < 1:

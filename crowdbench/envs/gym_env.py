@@ -1,0 +1,38 @@
+"""A single-robot Gymnasium env over the PettingZoo view (``gymnasium.make("crowdbench/CrowdNav-v0")``).
+
+Observations are the robot's dict (``robot`` [6], ``humans`` [M, 4], ``humans_mask`` [M]) in the
+robot's frame, actions ``[vx, vy]``; the episode ends on success or collision (terminated) or at the
+time limit (truncated). Ids and names: crowdbench/envs/registry.py.
+"""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+import gymnasium
+
+
+class CrowdGymEnv(gymnasium.Env):
+    metadata: ClassVar[dict] = {"render_modes": []}
+
+    def __init__(self, name: str = "replay", render_mode: str | None = None, **env: Any):
+        from crowdbench.envs.registry import make
+
+        if name == "selfplay":
+            raise ValueError("the Gymnasium env holds one robot; self-play (n agents): api='pettingzoo' or 'torchrl'")
+        if render_mode is not None:
+            raise ValueError(f"render_mode {render_mode!r} not supported; valid: None")
+        self.parallel = make(name, api="pettingzoo", **env)
+        (self.agent,) = self.parallel.possible_agents
+        self.observation_space = self.parallel.observation_space(self.agent)
+        self.action_space = self.parallel.action_space(self.agent)
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        obs, infos = self.parallel.reset(seed=seed, options=options)
+        return obs[self.agent], infos[self.agent]
+
+    def step(self, action):
+        obs, rewards, terminated, truncated, infos = self.parallel.step({self.agent: action})
+        a = self.agent
+        return obs[a], float(rewards[a]), bool(terminated[a]), bool(truncated[a]), infos[a]
