@@ -26,7 +26,9 @@ def per_file(report: Path) -> dict[str, tuple[float, int]]:
     """JUnit report -> {test file: (seconds, tests)}."""
     out: dict[str, list[float]] = defaultdict(lambda: [0.0, 0])
     for case in ET.parse(report).getroot().iter("testcase"):
-        name = case.get("classname", "").split(".")[0] + ".py"
+        # classname is tests.test_x (or tests.test_x.TestClass): the file is its second part
+        parts = case.get("classname", "").split(".")
+        name = (parts[1] if len(parts) > 1 else parts[0]) + ".py"
         out[name][0] += float(case.get("time", 0.0))
         out[name][1] += 1
     return {k: (v[0], int(v[1])) for k, v in out.items()}

@@ -150,6 +150,7 @@ def test_plot_smooth_must_be_positive(tmp_path, capsys):
     assert "--smooth: must be an integer >= 1 (got -5)" in err
 
 
+@pytest.mark.slow
 def test_a_sweep_validates_each_run(tmp_path):
     env = {**os.environ, "OMP_NUM_THREADS": "1",
            "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}  # this tree's crowdbench

@@ -53,6 +53,7 @@ def test_every_run_of_every_experiment_composes(name):
     assert len(seen) == (len(points) if len(points) > 1 else 0)
 
 
+@pytest.mark.slow
 def test_leaderboard_sweeps_train_every_row():
     assert len(sweep_points("leaderboard")) == 15  # 5 methods x 3 seeds
     assert len(sweep_points("leaderboard_long")) == 9  # 3 encoders x 3 seeds

@@ -219,6 +219,7 @@ EVAL = ["eval.episodes=2", "eval.scenes=[hotel]"]
 
 
 @pytest.mark.parametrize("name, label", [("gat", "GAT (TD3, gat)"), ("dsrnn", "DS-RNN attention (TD3, dsrnn)")])
+@pytest.mark.slow
 def test_trains_evaluates_submits_and_the_harness_runs_it(tmp_path, name, label, monkeypatch):
     from crowdbench.algos.checkpoint import load_checkpoint
     from crowdbench.cli import main

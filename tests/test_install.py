@@ -8,9 +8,12 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
+@pytest.mark.slow
 def test_installed_wheel_evaluates_from_outside_the_repository(tmp_path):
     # the wheel is built from the checkout with the installed setuptools (no network), then installed
     # without its dependencies into a venv that sees the packages of the interpreter running pytest (torch

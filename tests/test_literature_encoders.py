@@ -334,6 +334,7 @@ RUN = ["train.total_frames=256", "train.frames_per_batch=128", "algo.warmup=128"
        "eval.scenes=[hotel]"]
 
 
+@pytest.mark.slow
 def test_each_trains_evaluates_and_submits(tmp_path):
     root = tmp_path / "lb"
     entries = {}

@@ -14,12 +14,15 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from crowdbench.numerics import PINNED
 
 ROOT = Path(__file__).resolve().parents[1]
 CKPT = ROOT / "leaderboard" / "submissions" / "gatedgcn_ddpg_s1" / "checkpoint.pt"
 
 
+@pytest.mark.slow
 def test_episodes_are_the_same_under_every_cpu_capability(tmp_path):
     episodes = {}
     for cap in ("default", "avx2", "avx512"):

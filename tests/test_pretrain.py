@@ -97,6 +97,7 @@ def critic_mse(algo, demos) -> float:
 
 
 @pytest.mark.parametrize("algo, frames, epochs", [("td3", 1600, 8), ("ddpg", 1200, 6), ("sac", 1200, 4)])
+@pytest.mark.slow
 def test_warm_start_imitates_orca_on_unseen_episodes(algo, frames, epochs):
     cfg, env, learner = make(algo, f"train.pretrain_epochs={epochs}", "train.pretrain_batch=128",
                              "train.pretrain_lr=3e-3")
@@ -151,6 +152,7 @@ def test_bad_pretrain_is_a_one_line_error(tmp_path, capsys):
     assert not (tmp_path / "run").exists()
 
 
+@pytest.mark.slow
 def test_ppo_warm_start_clones_the_actor_and_fits_v(tmp_path):
     """PPO: the deterministic action imitates ORCA on another seed's episodes and V(s) moves to the returns."""
     from crowdbench.algos.ppo import VALUE
@@ -179,6 +181,7 @@ def test_ppo_warm_start_clones_the_actor_and_fits_v(tmp_path):
     assert main(args) == 0 and load_checkpoint(tmp_path / "checkpoint.pt")["updates"] == 2
 
 
+@pytest.mark.slow
 def test_cloning_term_holds_the_actor_near_orca_and_resumes(tmp_path):
     """train.pretrain_bc_weight: the actor's error to ORCA after RL updates stays below the run without the
     term; the term decays as configured, and a resumed run keeps it (demos.pt) and ends where the whole run does."""

@@ -207,6 +207,7 @@ def test_protocol_v2_lists_are_v1_episodes_regenerated_and_compared(tmp_path, mo
         load_episodes_v2("hotel")
 
 
+@pytest.mark.slow
 def test_training_with_other_reactive_values_evaluates_on_protocol_v2(tmp_path, capsys):
     """``crowdbench eval`` refuses non-protocol env.reactive values; a training run with them is evaluated
     (and probed) with protocol v2's values instead of failing at its end."""

@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 PLACEHOLDER = re.compile(r"\.\.\.|\b(RUN|SELFPLAY_RUN|OUT|DIR|SWEEP_DIR|NAME|LABEL|FILE|ADDR|N|S|K)\b")
 EVAL = ["eval.episodes=2", "eval.scenes=[hotel]"]
 RUN = ["train.total_frames=256", "train.frames_per_batch=128", "algo.warmup=128", "encoder.dim=8",
-       "train.probe_every=1000000", "train.checkpoint_every=1000000", "train.utd=0.25", *EVAL]
+       "train.probe_every=1000000", "train.checkpoint_every=1000000", "train.utd=0.0625", *EVAL]
 SWEEP = [o for o in RUN if not o.startswith("eval.episodes")] + ["eval.episodes=1"]
 SELFPLAY = ["env.batch=4", "train.frames_per_batch=32", "algo.warmup=64", "algo.batch_size=16", "train.utd=0.125",
             "train.total_frames=64", "train.checkpoint_every=64", "encoder.dim=8", "env.eval_episodes=2",
@@ -232,12 +232,20 @@ def written(places: dict) -> dict:
     }
 
 
+def quick(command: str) -> bool:
+    """In the quick suite: every command but training runs, sweeps and the leaderboard, plus the runs
+    the quick commands read (``pytest --full`` runs them all)."""
+    sub = INVOCATIONS[command][0][0]
+    return sub not in ("run", "submit", "leaderboard") or command in (PRODUCERS["run"], PRODUCERS["selfplay"]) \
+        or "--help" in command
+
+
 def _param(command: str):
     # commands sharing the sweep and the leaderboard root stay on one xdist worker (--dist loadgroup), so
     # the 15-run sweep they need is trained once
     text = " ".join(" ".join(i) for i in INVOCATIONS[command])
     marks = [pytest.mark.xdist_group("readme_leaderboard")] if "{lb}" in text or "{sweep}" in text else []
-    return pytest.param(command, marks=marks)
+    return pytest.param(command, marks=marks + [pytest.mark.slow] * (not quick(command)))
 
 
 @pytest.mark.parametrize("command", [_param(c) for c in INVOCATIONS])

@@ -211,6 +211,7 @@ def test_resume_into_another_replay_kind_keeps_the_transitions(tmp_path):
     assert state["config"]["algo"]["replay"] == "prioritized"
 
 
+@pytest.mark.slow
 def test_kill_and_resume_keeps_learning(tmp_path, monkeypatch):
     """Findings 21: three interruptions (frame budgets, and a kill between writing the buffer and the
     checkpoint) end with the frames, updates and buffer of an uninterrupted run."""
@@ -245,6 +246,7 @@ def test_kill_and_resume_keeps_learning(tmp_path, monkeypatch):
     assert log == [str(f) for f in range(64, total + 1, 64)]
 
 
+@pytest.mark.slow
 def test_sigkill_resume_continues_with_the_buffer(tmp_path, capsys):
     """A real `crowdbench run` SIGKILLed after a checkpoint: while it runs its directory is refused to a
     second run; resumed, it makes the updates of an uninterrupted run."""

@@ -43,6 +43,7 @@ def results(root: Path) -> dict[str, dict]:
     return {p.parent.name: json.loads(p.read_text()) for p in (root / "results").glob("*/results.json")}
 
 
+@pytest.mark.slow
 def test_site_files_escaping_and_cache(board, tmp_path):
     root, site, log = board
     index = (site / "index.html").read_text()
@@ -78,6 +79,7 @@ def test_training_command():
         "crowdbench run experiment=leaderboard 'x=a b'"
 
 
+@pytest.mark.slow
 def test_site_in_a_browser(board, tmp_path):
     require_system("chromium")
     require_system("chromedriver")

@@ -181,6 +181,7 @@ def numbers(root: Path) -> dict:
     return json.loads(out.stdout)
 
 
+@pytest.mark.slow
 def test_protocol_v1_metrics_bit_identical_to_the_code_before():
     """Every key the evaluation had before (per episode, aggregated, in results) keeps its exact value on
     5 hotel episodes of straight and ORCA; the new metrics only add keys. "Before" is what 759d7f7 gave

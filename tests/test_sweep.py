@@ -38,6 +38,7 @@ def basic_sweep(tmp_path_factory) -> Path:
     return root / "sweep"
 
 
+@pytest.mark.slow
 def test_basic_launcher_writes_every_run_and_the_summary(basic_sweep):
     runs = [basic_sweep / "0", basic_sweep / "1"]
     for d in runs:
@@ -52,6 +53,7 @@ def test_basic_launcher_writes_every_run_and_the_summary(basic_sweep):
     assert row["success_sd"] == pytest.approx(statistics.stdev(values))
 
 
+@pytest.mark.slow
 def test_ray_launcher_gives_the_same_runs_as_the_basic_one(basic_sweep, tmp_path):
     p = crowdbench("run", "-m", "hydra/launcher=ray", "hydra.launcher.ray.init.num_cpus=2", "seed=0,1", *TINY,
                    "out=ray_sweep", cwd=tmp_path)
@@ -65,6 +67,7 @@ def test_ray_launcher_gives_the_same_runs_as_the_basic_one(basic_sweep, tmp_path
     assert json.loads((ray_dir / "sweep.json").read_text())["table"][0]["finished"] == 2
 
 
+@pytest.mark.slow
 def test_a_failing_run_does_not_stop_the_others_and_is_named(tmp_path):
     p = crowdbench("run", "-m", "encoder.dim=8,0", *[t for t in TINY if not t.startswith("encoder.dim")],
                    "out=sweep", cwd=tmp_path)
@@ -77,12 +80,14 @@ def test_a_failing_run_does_not_stop_the_others_and_is_named(tmp_path):
     assert "FAILED run 1 (encoder.dim=0" in p.stdout
 
 
+@pytest.mark.slow
 def test_a_bad_key_fails_the_sweep_before_any_run(tmp_path):
     p = crowdbench("run", "-m", "seed=0,1", "train.no_such_key=1", "out=sweep", cwd=tmp_path)
     assert p.returncode != 0 and "no_such_key" in p.stderr
     assert not (tmp_path / "sweep" / "0").exists()
 
 
+@pytest.mark.slow
 def test_submit_turns_each_finished_run_into_a_submission(basic_sweep, tmp_path):
     p = crowdbench("submit", str(basic_sweep), "--root", str(tmp_path), "--entry", "tiny TD3", cwd=tmp_path)
     assert p.returncode == 0, p.stderr

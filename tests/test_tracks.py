@@ -48,6 +48,7 @@ def test_trained_track_of_a_config():
     assert trained_track({"env": {"name": "selfplay"}}) is None
 
 
+@pytest.mark.slow
 def test_every_track_evaluated_tabled_and_checked(tmp_path):
     root = board(tmp_path)
     log = []
@@ -79,6 +80,7 @@ def test_every_track_evaluated_tabled_and_checked(tmp_path):
     assert "matches" in log[-1]
 
 
+@pytest.mark.slow
 def test_transfer_rows_bold_their_home_track(tmp_path):
     root = tmp_path / "lb"
     add_straight(root)
@@ -107,6 +109,7 @@ def test_transfer_rows_bold_their_home_track(tmp_path):
     assert run(root, check=True, log=log.append, tracks=["v1", "crowdnav-square5"], **TINY) == 0, log[-1]
 
 
+@pytest.mark.slow
 def test_a_claimed_track_must_match_the_checkpoint(tmp_path):
     root = tmp_path / "lb"
     add_straight(root)

@@ -77,6 +77,7 @@ def test_resume_checks_the_config(tmp_path):
     assert stats["frames"] == 512 and load_checkpoint(tmp_path / "checkpoint.pt")["frames"] == 512
 
 
+@pytest.mark.slow
 def test_resume_after_kill(tmp_path):
     """Kill a real `crowdbench run` after its first checkpoint, resume it, and check the log and counter."""
     args = [sys.executable, "-m", "crowdbench.cli", "run", "algo=td3", "encoder=gcn", *TINY, *SMALL_ENCODER["gcn"],
