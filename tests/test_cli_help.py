@@ -21,7 +21,7 @@ def exit_code(args: list[str]) -> int:
 
 
 @pytest.mark.parametrize("command", COMMANDS)
-@pytest.mark.parametrize("flag", ["--help", "-h"])
+@pytest.mark.parametrize("flag", ["--help", pytest.param("-h", marks=pytest.mark.slow)])  # -h: the same path
 def test_every_command_has_help(command, flag, capsys, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)  # Hydra writes nothing for --help; argparse neither: checked below
     assert exit_code([command, flag]) == 0
@@ -30,7 +30,7 @@ def test_every_command_has_help(command, flag, capsys, tmp_path, monkeypatch):
     assert list(tmp_path.iterdir()) == []
 
 
-@pytest.mark.parametrize("command", ["run", "eval"])
+@pytest.mark.parametrize("command", ["run", pytest.param("eval", marks=pytest.mark.slow)])
 def test_hydra_flags_show_the_config_and_run_nothing(command, capsys, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     assert main([command, "--cfg", "job", "algo=sac", "encoder=gcn"]) == 0

@@ -39,8 +39,17 @@ def composed_combinations(env: str):
 OFF_POLICY_EXPERIMENTS = ("paper", "leaderboard", "baselines", "crowdnav", "reactive", "warmstart")  # they set algo.replay
 
 
-# ~230 compositions per env: the replay env's in the quick suite, the others' in the full one
-@pytest.mark.parametrize("env", [pytest.param(e, marks=[pytest.mark.slow] * (e != "replay")) for e in OPTIONS["env"]])
+def test_each_experiment_and_method_validates_on_its_own():
+    """The quick suite's share of the combinations below: each experiment, each method, by itself."""
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base=None):
+        for overrides in [[f"experiment={e}"] for e in OPTIONS["experiment"]] + [[f"method={m}"] for m in OPTIONS["method"]]:
+            cfg = hydra_compose(config_name="config", overrides=overrides)
+            validate(cfg)
+            assert unknown_keys(cfg) == [], overrides
+
+
+@pytest.mark.slow  # ~230 compositions per env
+@pytest.mark.parametrize("env", OPTIONS["env"])
 def test_every_shipped_config_combination_validates_and_every_key_has_a_schema_field(env):
     seen = 0
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base=None):

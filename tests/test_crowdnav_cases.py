@@ -140,7 +140,8 @@ def test_phases_and_special_cases():
     assert ((r["human_v_pref"] >= 0.5) & (r["human_v_pref"] < 1.5)).all()
 
 
-@pytest.mark.parametrize("scenario,n,phase", [("circle", 20, "test"), ("circle", 12, "train"), ("square", 20, "val"),
+@pytest.mark.parametrize("scenario,n,phase", [pytest.param("circle", 20, "test", marks=pytest.mark.slow),  # ~10 s
+                                             ("circle", 12, "train"), ("square", 20, "val"),
                                              ("circle", 5, "test"), ("square", 5, "test"), ("circle", 0, "test")])
 def test_batched_rejection_equals_crowdnavs_loop(scenario, n, phase):
     """The block-wise rejection test (crowdnav_case) makes the same draws, decisions and values as the

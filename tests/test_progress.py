@@ -47,6 +47,7 @@ def test_the_estimate_uses_training_rates_not_the_warm_up(monkeypatch):
     assert eta.postfix() == "03:06" and "~3 min more" in lines[-1]
 
 
+@pytest.mark.slow
 def test_ctrl_c_checkpoints_and_prints_the_resume_command(tmp_path):
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"}
     env.pop("RL_WARNINGS", None)  # the console script's defaults, not the test suite's

@@ -236,8 +236,7 @@ def quick(command: str) -> bool:
     """In the quick suite: every command but training runs, sweeps and the leaderboard, plus the runs
     the quick commands read (``pytest --full`` runs them all)."""
     sub = INVOCATIONS[command][0][0]
-    return sub not in ("run", "submit", "leaderboard") or command in (PRODUCERS["run"], PRODUCERS["selfplay"]) \
-        or "--help" in command
+    return sub not in ("run", "submit", "leaderboard") or command in (PRODUCERS["run"], PRODUCERS["selfplay"])
 
 
 def _param(command: str):

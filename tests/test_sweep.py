@@ -106,6 +106,7 @@ def test_submit_turns_each_finished_run_into_a_submission(basic_sweep, tmp_path)
     assert sub["entry"] == "gatedgcn_td3 (sweep)"  # the method and the sweep: no shipped row has it
 
 
+@pytest.mark.slow
 def test_submit_of_a_plain_sweep_then_the_leaderboard(basic_sweep, tmp_path):
     """No --entry: names and labels from the sweep, never those of shipped submissions."""
     shipped = tmp_path / "submissions" / "gatedgcn_td3_s0"
