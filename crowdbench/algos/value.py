@@ -139,3 +139,16 @@ def policy_from_state(state: dict) -> ValuePolicy:
     model = ValueModel(SimpleNamespace(**cfg["algo"]), SimpleNamespace(**cfg["env"]))
     model.net.load_state_dict(state["value_net"])
     return ValuePolicy(model)
+
+
+class Value:
+    """The registry's component (crowdbench/algos/registry.py): the schema and the actor kind. Training is
+    :func:`crowdbench.algos.value_train.train_value` (not the collector loop of crowdbench/algos/train.py:
+    acting needs the lookahead candidates of the world, and episodes end before their targets are known)."""
+
+    name = "value"
+    config = ValueConfig
+    actor_kind = "value"
+
+
+ALGORITHM = Value
