@@ -15,13 +15,11 @@ from pathlib import Path
 def run_value(cfg, out: Path, overrides: list[str], evaluate=None) -> dict:
     """Train into ``out`` and evaluate (``evaluate(policy, cfg, out, overrides)``; default: CrowdNav's
     500 test cases of ``env.eval_settings``). Results carry ``privileged: true`` with ``lookahead=query``."""
-    import torch
-
-    from crowdbench.algos.value import policy_from_state
+    from crowdbench.algos.checkpoint import policy_from_checkpoint
     from crowdbench.algos.value_train import train_value
 
     stats = train_value(cfg, out)
-    policy = policy_from_state(torch.load(out / "checkpoint.pt", weights_only=True))
+    policy = policy_from_checkpoint(out / "checkpoint.pt")
     t0 = time.perf_counter()
     if evaluate is None:
         from crowdbench.cli_eval import run_crowdnav_eval as evaluate

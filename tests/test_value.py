@@ -256,3 +256,24 @@ def test_greedy_evaluation_is_deterministic_and_labelled_privileged():
     cv = evaluate_crowdnav(ValuePolicy(value_model(lookahead="cv")), CrowdNavConfig(), episodes=2)
     assert "privileged" not in cv and cv["lookahead"] == "cv"
     assert SUCCESS == 1
+
+
+def test_memory_keeps_crowdnavs_episodes():
+    """Success and collision episodes are stored whole; a timeout only with store_timeouts, without its last step."""
+    from crowdbench.algos.value_train import make_memory, store
+    from crowdbench.envs.core import COLLISION, TIMEOUT
+
+    lengths, outcome = [3, 5, 2], torch.tensor([SUCCESS, TIMEOUT, COLLISION])
+    T, B = 5, 3
+    active = torch.tensor([[t < n for n in lengths] for t in range(T)])
+    r = {"x": torch.arange(T * B, dtype=torch.float32).reshape(T, B, 1, 1).expand(T, B, 5, 13),
+         "mask": torch.ones(T, B, 5, dtype=torch.bool), "active": active, "outcome": outcome}
+    values = torch.arange(T * B, dtype=torch.float32).reshape(T, B)
+    for timeouts, expect in ((False, [(t, b) for b in (0, 2) for t in range(lengths[b])]),
+                             (True, [(t, b) for b in range(3) for t in range(lengths[b] - (b == 1))])):
+        mem = make_memory(100, 10)
+        assert store(mem, r, values, timeouts) == len(expect)
+        got = sorted(mem[:len(mem)]["value"].squeeze(-1).tolist())
+        assert got == sorted(float(values[t, b]) for t, b in expect)
+        assert torch.equal(mem[:len(mem)]["x"][:, 0, 0], mem[:len(mem)]["value"].squeeze(-1))  # pairs stay paired
+    assert COLLISION != TIMEOUT

@@ -51,6 +51,7 @@ class ValueConfig:
     train_batches: float = bounded(100.0, ge=0)  # gradient steps per finished episode
     batch_size: int = bounded(100, ge=1)
     capacity: int = bounded(100000, ge=1)
+    store_timeouts: bool = False  # true: also learn from timed-out episodes (bootstrapped; not CrowdNav's)
     target_update: int = bounded(50, ge=1)  # episodes between target-network refreshes
     epsilon_start: float = bounded(0.5, ge=0, le=1)
     epsilon_end: float = bounded(0.1, ge=0, le=1)
@@ -132,12 +133,12 @@ class ValuePolicy(Policy):
 
 
 def policy_from_state(state: dict) -> ValuePolicy:
-    """The greedy policy of a ``algo=value`` checkpoint (``config`` + ``value_net``)."""
+    """The greedy policy of an ``algo=value`` checkpoint (``config``; ``actor``: the value network's weights)."""
     from types import SimpleNamespace
 
     cfg = state["config"]
     model = ValueModel(SimpleNamespace(**cfg["algo"]), SimpleNamespace(**cfg["env"]))
-    model.net.load_state_dict(state["value_net"])
+    model.net.load_state_dict(state["actor"])
     return ValuePolicy(model)
 
 

@@ -24,7 +24,7 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.data.replay_buffers import RandomSampler
 
 from crowdbench.algos.value import ValueModel, epsilon
-from crowdbench.envs.core import COLLISION, RUNNING, SUCCESS
+from crowdbench.envs.core import COLLISION, RUNNING, SUCCESS, TIMEOUT
 from crowdbench.envs.lookahead import lookahead_observation
 
 
@@ -86,10 +86,15 @@ def lookahead_act(model: ValueModel, world, eps: torch.Tensor | None, gen: torch
     return act
 
 
-def store(memory: ReplayBuffer, r: dict, values: torch.Tensor) -> int:
-    """Push the ``(state, value)`` pairs of the round's success and collision episodes; returns how many."""
+def store(memory: ReplayBuffer, r: dict, values: torch.Tensor, timeouts: bool = False) -> int:
+    """Push the ``(state, value)`` pairs of the round's success and collision episodes (CrowdNav's explorer);
+    ``timeouts``: those of timed-out episodes too, but their last step (truncated, not terminal: its
+    bootstrapped target would need the state after it). Returns how many."""
     keep = (r["outcome"] == SUCCESS) | (r["outcome"] == COLLISION)
     sel = r["active"] & keep.unsqueeze(0)  # [T, B]
+    if timeouts:
+        cut = (r["outcome"] == TIMEOUT).unsqueeze(0)
+        sel = sel | r["active"] & cut & ~last_steps(r["active"])
     n = int(sel.sum())
     if n:
         memory.extend(TensorDict({"x": r["x"][sel], "mask": r["mask"][sel], "value": values[sel].unsqueeze(-1)},
@@ -154,9 +159,10 @@ def imitation(cfg, model: ValueModel, world, sampler, memory: ReplayBuffer, log)
     a, t0 = cfg.algo, time.perf_counter()
     orca = demonstrator(cfg)
     act = lambda obs, running: orca.act(obs_tensordict(obs, world.B))
-    done = success = pairs = 0
+    done = success = pairs = frames = 0
     while done < a.il_episodes:
         r = run_round(model, world, sampler(world.B), act)
+        frames += int(r["active"].sum())
         pairs += store(memory, r, discounted_returns(r["reward"], model.gamma_bar))
         success += int((r["outcome"] == SUCCESS).sum())
         done += world.B
@@ -164,7 +170,7 @@ def imitation(cfg, model: ValueModel, world, sampler, memory: ReplayBuffer, log)
     opt = make_optimizer(model.net, a.il_optimizer, a.il_lr)
     steps = a.il_steps or a.il_epochs * -(-len(memory) // a.batch_size)  # CrowdNav: epochs over the memory
     loss = fit(model.net, memory, opt, steps) if len(memory) else float("nan")
-    out = {"il_episodes": done, "il_success": success / max(done, 1), "il_pairs": pairs, "il_loss": loss,
+    out = {"il_episodes": done, "il_frames": frames, "il_success": success / max(done, 1), "il_pairs": pairs, "il_loss": loss,
            "il_collect_s": collect_s, "il_fit_s": time.perf_counter() - t0 - collect_s}
     log(out)
     return out
@@ -196,14 +202,15 @@ def v_learning(cfg, model: ValueModel, world, sampler, memory: ReplayBuffer, log
     gen = torch.Generator().manual_seed(int(cfg.seed) + 1)
     target = copy.deepcopy(model.net)
     opt = make_optimizer(model.net, a.optimizer, a.lr)
-    t0, done, credit, last = time.perf_counter(), 0, 0.0, {}
+    t0, done, credit, frames, last = time.perf_counter(), 0, 0.0, 0, {}
     while done < a.episodes:
         if a.max_minutes and time.perf_counter() - t0 > 60 * a.max_minutes:
             break
         eps = epsilon(done + torch.arange(B), a.epsilon_start, a.epsilon_end, a.epsilon_decay)
         model.net.eval()
         r = run_round(model, world, sampler(B), lookahead_act(model, world, eps, gen))
-        stored = store(memory, r, round_targets(r, target, g))
+        stored = store(memory, r, round_targets(r, target, g), bool(a.store_timeouts))
+        frames += int(r["active"].sum())
         credit += a.train_batches * B  # gradient steps owed: train_batches per finished episode
         steps = int(credit)
         credit -= steps
@@ -213,7 +220,7 @@ def v_learning(cfg, model: ValueModel, world, sampler, memory: ReplayBuffer, log
         if done // a.target_update > before // a.target_update:
             target.load_state_dict(model.net.state_dict())
         o = r["outcome"]
-        last = {"episodes": done, "epsilon": float(eps[0]), "success": float((o == SUCCESS).float().mean()),
+        last = {"episodes": done, "frames": frames, "epsilon": float(eps[0]), "success": float((o == SUCCESS).float().mean()),
                 "collision": float((o == COLLISION).float().mean()), "loss": loss, "stored": stored,
                 "wall_s": time.perf_counter() - t0}
         if val_episodes is not None and a.val_every and done // a.val_every > before // a.val_every:
@@ -226,14 +233,14 @@ def v_learning(cfg, model: ValueModel, world, sampler, memory: ReplayBuffer, log
 
 def train_value(cfg, out_dir, log=print) -> dict:
     """Imitation then deep V-learning per ``cfg`` (``algo=value``, ``env=crowdnav``); writes
-    ``out_dir/checkpoint.pt`` (config + ``value_net``) and ``out_dir/train_log.jsonl``; returns the stats."""
+    ``out_dir/checkpoint.pt`` (config + the value network as ``actor``) and ``out_dir/train_log.jsonl``; returns the stats."""
     import json
     from pathlib import Path
 
     from omegaconf import OmegaConf
 
+    from crowdbench.algos.checkpoint import save_checkpoint
     from crowdbench.envs.factory import env_name, make_world
-    from crowdbench.outputs import save_torch_atomic
 
     if env_name(cfg.env) != "crowdnav":
         raise ValueError("algo=value runs on env=crowdnav (its reward and test cases are CrowdNav's)")
@@ -258,9 +265,11 @@ def train_value(cfg, out_dir, log=print) -> dict:
     rl = v_learning(cfg, model, world, sampler, memory, record, scenario.test_list("val"))
     wall = time.perf_counter() - t0
     stats = {"il": il, "rl": rl, "wall_time_s": wall, "privileged": model.lookahead == "query"}
-    save_torch_atomic(out_dir / "checkpoint.pt", {"config": OmegaConf.to_container(cfg, resolve=True),
-                                                  "value_net": model.net.state_dict(), "wall_time_s": wall,
-                                                  "episodes": rl.get("episodes", 0)})
+    # "actor": what acts is the value network (the checkpoint loader's required field holds it)
+    save_checkpoint(out_dir / "checkpoint.pt", {"config": OmegaConf.to_container(cfg, resolve=True),
+                                                "actor": model.net.state_dict(), "wall_time_s": wall,
+                                                "frames": il.get("il_frames", 0) + rl.get("frames", 0),
+                                                "episodes": rl.get("episodes", 0)})
     record({"done": True, "wall_time_s": wall})
     logf.close()
     return stats
