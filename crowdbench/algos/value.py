@@ -128,7 +128,10 @@ class ValuePolicy(Policy):
     @torch.no_grad()
     def act(self, td: TensorDict) -> torch.Tensor:
         obs = td[OBS]
-        best = self.model.greedy(obs)
+        best = torch.zeros(obs["robot"].shape[0], dtype=torch.long)  # stop where the episode has ended
+        rows = obs["cand_running"][:, 0].nonzero().squeeze(-1)  # only these: finished episodes ignore actions
+        if len(rows):
+            best[rows] = self.model.greedy(obs[rows])
         return self.model.actions[best].unsqueeze(1)  # [B, 1, 2]
 
 

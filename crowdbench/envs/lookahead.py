@@ -29,7 +29,7 @@ from crowdbench.envs.core import _FAR, RUNNING, segment_min_distance, step_rewar
 MODELS = ("query", "cv")
 PRIVILEGED_MODELS = ("query",)
 KINEMATICS = ("holonomic", "unicycle")
-KEYS = ("cand_robot", "cand_reward", "cand_done", "cand_humans", "cand_humans_mask")
+KEYS = ("cand_robot", "cand_reward", "cand_done", "cand_humans", "cand_humans_mask", "cand_running")
 
 
 def action_set(v_pref: float, speeds: int = 5, headings: int = 16, kinematics: str = "holonomic") -> torch.Tensor:
@@ -102,7 +102,8 @@ def candidates(world, actions: torch.Tensor, model: str) -> dict[str, torch.Tens
 def lookahead_observation(world, actions: torch.Tensor, model: str) -> dict[str, torch.Tensor]:
     """:func:`candidates` in robot 0's observation frame (``rotate``: origin at the robot now, x towards its
     goal), as the observation's extra keys ``[B, 1, ...]``: ``cand_robot`` ``[K, 4]`` (next position,
-    velocity), ``cand_reward``/``cand_done`` ``[K]``, ``cand_humans`` ``[M, 4]`` and ``cand_humans_mask`` ``[M]``."""
+    velocity), ``cand_reward``/``cand_done`` ``[K]``, ``cand_humans`` ``[M, 4]``, ``cand_humans_mask`` ``[M]`` and
+    ``cand_running`` ``[]`` (the robot still acts)."""
     if world.cfg.frame != "rotate" or world.A != 1:
         raise ValueError("lookahead observations need one robot and frame=rotate")
     c = candidates(world, actions, model)
@@ -111,5 +112,7 @@ def lookahead_observation(world, actions: torch.Tensor, model: str) -> dict[str,
     robot = torch.cat((to_local(c["robot_pos"] - pos.unsqueeze(1), rot), to_local(c["robot_vel"], rot)), -1)
     humans = torch.cat((to_local(c["humans_pos"] - pos.unsqueeze(1), rot), to_local(c["humans_vel"], rot)), -1)
     humans = humans * c["humans_valid"].unsqueeze(-1)
+    # cand_running: the robot still acts (a finished episode's action is ignored: the policy may skip it)
     return {"cand_robot": robot.unsqueeze(1), "cand_reward": c["reward"].unsqueeze(1), "cand_done": c["done"].unsqueeze(1),
-            "cand_humans": humans.unsqueeze(1), "cand_humans_mask": c["humans_valid"].unsqueeze(1)}
+            "cand_humans": humans.unsqueeze(1), "cand_humans_mask": c["humans_valid"].unsqueeze(1),
+            "cand_running": world.outcome[:, :1] == RUNNING}
