@@ -249,11 +249,13 @@ def test_candidate_values_equal_a_loop_over_actions(net):
 def test_greedy_evaluation_is_deterministic_and_labelled_privileged():
     from crowdbench.eval_crowdnav import evaluate_crowdnav
 
-    runs = [evaluate_crowdnav(ValuePolicy(value_model()), CrowdNavConfig(), episodes=4) for _ in range(2)]
+    short = CrowdNavConfig(time_limit=30)  # an untrained network rarely arrives: keep its episodes short
+    runs = [evaluate_crowdnav(ValuePolicy(value_model()), short, episodes=4, save_episodes=True) for _ in range(2)]
     a, b = (r["scenes"]["circle_n5"] for r in runs)
     assert a == b
     assert runs[0]["privileged"] is True and runs[0]["lookahead"] == "query"
-    cv = evaluate_crowdnav(ValuePolicy(value_model(lookahead="cv")), CrowdNavConfig(), episodes=2)
+    assert "(privileged)" in runs[0]["policy"]
+    cv = evaluate_crowdnav(ValuePolicy(value_model(lookahead="cv")), short, episodes=2)
     assert "privileged" not in cv and cv["lookahead"] == "cv"
     assert SUCCESS == 1
 
@@ -277,3 +279,23 @@ def test_memory_keeps_crowdnavs_episodes():
         assert got == sorted(float(values[t, b]) for t, b in expect)
         assert torch.equal(mem[:len(mem)]["x"][:, 0, 0], mem[:len(mem)]["value"].squeeze(-1))  # pairs stay paired
     assert COLLISION != TIMEOUT
+
+
+def test_run_trains_evaluates_and_the_checkpoint_evaluates_again(tmp_path):
+    """``crowdbench run env=crowdnav algo=value`` (a tiny budget): a checkpoint, results labelled privileged;
+    ``crowdbench eval policy=checkpoint`` of it gives the same outcomes."""
+    import json
+
+    from crowdbench.cli import main
+
+    tiny = ["env=crowdnav", "algo=value", "algo.batch=4", "algo.il_episodes=4", "algo.il_steps=3", "algo.episodes=4",
+            "algo.train_batches=1", "algo.batch_size=8", "algo.val_every=0", "env.time_limit=20", "env.eval_episodes=3"]
+    assert main(["run", *tiny, f"out={tmp_path / 'run'}"]) == 0
+    res = json.loads((tmp_path / "run" / "results.json").read_text())
+    assert res["privileged"] is True and res["lookahead"] == "query"
+    log = [json.loads(line) for line in (tmp_path / "run" / "train_log.jsonl").read_text().splitlines()]
+    assert log[0]["il_episodes"] == 4 and log[1]["episodes"] == 4 and log[-1]["done"]
+    assert main(["eval", "env=crowdnav", "env.time_limit=20", "env.eval_episodes=3",
+                 f"policy={tmp_path / 'run' / 'checkpoint.pt'}", f"out={tmp_path / 'eval'}"]) == 0
+    again = json.loads((tmp_path / "eval" / "results.json").read_text())
+    assert again["scenes"] == res["scenes"] and again["privileged"] is True
