@@ -299,3 +299,20 @@ def test_run_trains_evaluates_and_the_checkpoint_evaluates_again(tmp_path):
                  f"policy={tmp_path / 'run' / 'checkpoint.pt'}", f"out={tmp_path / 'eval'}"]) == 0
     again = json.loads((tmp_path / "eval" / "results.json").read_text())
     assert again["scenes"] == res["scenes"] and again["privileged"] is True
+
+
+def test_keep_best_restores_the_best_validated_network():
+    from crowdbench.algos.value_train import Best
+
+    model = value_model("cadrl")
+    best = Best(model, None, None, print)
+    best.active = True  # scored by hand below (no validation round)
+    first = copy.deepcopy(model.net.state_dict())
+    best.offer({"success": 0.9, "nav_time": 12.0}, 0)
+    with torch.no_grad():
+        for p in model.net.parameters():
+            p.add_(1.0)
+    best.offer({"success": 0.9, "nav_time": 12.5}, 32)  # as successful but slower: not kept
+    best.offer({"success": 0.8, "nav_time": 10.0}, 64)  # faster but less successful: not kept
+    best.restore()
+    assert best.episode == 0 and all(torch.equal(v, first[k]) for k, v in model.net.state_dict().items())

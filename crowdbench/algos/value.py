@@ -57,6 +57,7 @@ class ValueConfig:
     epsilon_end: float = bounded(0.1, ge=0, le=1)
     epsilon_decay: int = bounded(4000, ge=1)  # episodes
     val_every: int = bounded(1000, ge=0)  # episodes between validations on the 100 validation cases (0: none)
+    keep_best: bool = False  # true: keep the network of the best validation (imitation's included), not the last
     max_minutes: float = bounded(0.0, ge=0)  # wall-time budget of the RL phase (0: none)
 
 

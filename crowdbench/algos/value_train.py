@@ -203,6 +203,7 @@ def v_learning(cfg, model: ValueModel, world, sampler, memory: ReplayBuffer, log
     target = copy.deepcopy(model.net)
     opt = make_optimizer(model.net, a.optimizer, a.lr)
     t0, done, credit, frames, last = time.perf_counter(), 0, 0.0, 0, {}
+    best = Best(model, world, val_episodes if a.keep_best else None, log)  # scores the imitation network first
     while done < a.episodes:
         if a.max_minutes and time.perf_counter() - t0 > 60 * a.max_minutes:
             break
@@ -225,10 +226,37 @@ def v_learning(cfg, model: ValueModel, world, sampler, memory: ReplayBuffer, log
                 "wall_s": time.perf_counter() - t0}
         if val_episodes is not None and a.val_every and done // a.val_every > before // a.val_every:
             model.net.eval()
-            last.update({f"val_{k}": v for k, v in validate(model, world, val_episodes).items()})
+            val = validate(model, world, val_episodes)
+            last.update({f"val_{k}": v for k, v in val.items()})
+            best.offer(val, done)
         log(last)
     model.net.eval()
-    return last
+    best.restore()
+    return {**last, "selected_episode": best.episode}
+
+
+class Best:
+    """``algo.keep_best``: the network of the best validation (success, then the shorter navigation time),
+    the imitation network included; restored at the end. Selection is on CrowdNav's 100 validation cases,
+    never the test cases. ``episodes=None``: inactive, the final network is kept."""
+
+    def __init__(self, model: ValueModel, world, episodes, log):
+        self.model, self.active = model, episodes is not None
+        self.state, self.key, self.episode = None, None, None
+        if self.active:
+            val = validate(model, world, episodes)
+            log({"episodes": 0, **{f"val_{k}": v for k, v in val.items()}})
+            self.offer(val, 0)
+
+    def offer(self, val: dict, episode: int) -> None:
+        key = (val["success"], -val["nav_time"] if val["success"] > 0 else 0.0)
+        if self.active and (self.key is None or key > self.key):
+            self.key, self.episode = key, episode
+            self.state = copy.deepcopy(self.model.net.state_dict())
+
+    def restore(self) -> None:
+        if self.state is not None:
+            self.model.net.load_state_dict(self.state)
 
 
 def train_value(cfg, out_dir, log=print) -> dict:
@@ -260,16 +288,18 @@ def train_value(cfg, out_dir, log=print) -> dict:
         logf.flush()
         log(d)
 
+    def save(name: str, wall: float, frames: int, episodes: int) -> None:
+        # "actor": what acts is the value network (the checkpoint loader's required field holds it)
+        save_checkpoint(out_dir / name, {"config": OmegaConf.to_container(cfg, resolve=True), "actor": model.net.state_dict(),
+                                         "wall_time_s": wall, "frames": frames, "episodes": episodes})
+
     t0 = time.perf_counter()
     il = imitation(cfg, model, world, sampler, memory, record) if a.il_episodes else {}
+    save("checkpoint_il.pt", time.perf_counter() - t0, il.get("il_frames", 0), 0)  # the imitation network alone
     rl = v_learning(cfg, model, world, sampler, memory, record, scenario.test_list("val"))
     wall = time.perf_counter() - t0
     stats = {"il": il, "rl": rl, "wall_time_s": wall, "privileged": model.lookahead == "query"}
-    # "actor": what acts is the value network (the checkpoint loader's required field holds it)
-    save_checkpoint(out_dir / "checkpoint.pt", {"config": OmegaConf.to_container(cfg, resolve=True),
-                                                "actor": model.net.state_dict(), "wall_time_s": wall,
-                                                "frames": il.get("il_frames", 0) + rl.get("frames", 0),
-                                                "episodes": rl.get("episodes", 0)})
+    save("checkpoint.pt", wall, il.get("il_frames", 0) + rl.get("frames", 0), rl.get("episodes", 0))
     record({"done": True, "wall_time_s": wall})
     logf.close()
     return stats
