@@ -316,3 +316,22 @@ def test_keep_best_restores_the_best_validated_network():
     best.offer({"success": 0.8, "nav_time": 10.0}, 64)  # faster but less successful: not kept
     best.restore()
     assert best.episode == 0 and all(torch.equal(v, first[k]) for k, v in model.net.state_dict().items())
+
+
+@pytest.mark.parametrize("net", ["sarl", "lm_sarl"])
+def test_a_candidate_is_the_state_the_step_leads_to(net):
+    """V is trained on observed states and queried on candidates: with ``query`` the candidate of the action
+    taken is the next observed state, as the network reads it."""
+    model = value_model(net)
+    world = crowd_world(n_cases=4)
+    obs = world.observe()
+    look = lookahead_observation(world, model.actions, "query")
+    for k in (0, 5, 40, 77):
+        w = copy.deepcopy(world)
+        w.step(model.actions[k].expand(4, 1, 2).clone())
+        x_next, m_next = model.state(w.observe())
+        cr, ch = look["cand_robot"][:, 0, k], look["cand_humans"][:, 0]
+        x_cand = net_input(net, cr[:, :2], cr[:, 2:], obs["robot"][:, 0, 4:6], ch[..., :2], ch[..., 2:],
+                           look["cand_humans_mask"][:, 0], model.radii, 1.0)
+        assert torch.equal(m_next, look["cand_humans_mask"][:, 0])
+        assert torch.allclose(x_cand, x_next, atol=1e-5), (k, (x_cand - x_next).abs().max())
