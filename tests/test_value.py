@@ -335,3 +335,29 @@ def test_a_candidate_is_the_state_the_step_leads_to(net):
                            look["cand_humans_mask"][:, 0], model.radii, 1.0)
         assert torch.equal(m_next, look["cand_humans_mask"][:, 0])
         assert torch.allclose(x_cand, x_next, atol=1e-5), (k, (x_cand - x_next).abs().max())
+
+
+def test_a_value_submission_in_a_worker_gives_the_in_process_outcomes(tmp_path):
+    """The isolated worker declares its lookahead; the harness computes the candidates and sends them with
+    each observation: the same outcomes as the policy evaluated in-process, labelled privileged."""
+    from omegaconf import OmegaConf
+
+    from crowdbench.algos.checkpoint import policy_from_checkpoint, save_checkpoint
+    from crowdbench.cli import compose
+    from crowdbench.eval_crowdnav import evaluate_crowdnav
+    from crowdbench.leaderboard.sandbox import Limits
+    from crowdbench.leaderboard.worker import WorkerPolicy
+
+    sub = tmp_path / "value_s0"
+    sub.mkdir()
+    cfg = OmegaConf.to_container(compose(["env=crowdnav", "algo=value", "algo.net=cadrl"]), resolve=True)
+    model = value_model("cadrl")
+    save_checkpoint(sub / "checkpoint.pt", {"config": cfg, "actor": model.net.state_dict(), "frames": 0})
+    (sub / "submission.yaml").write_text(f"name: value_s0\nkind: learned\nentry: CADRL (value)\nencoder: "
+                                         f"{cfg['encoder']['name']}\nalgo: value\ntrack: crowdnav-circle5\nauthors: [t]\n")
+    short = CrowdNavConfig(time_limit=25)
+    local = evaluate_crowdnav(policy_from_checkpoint(sub / "checkpoint.pt"), short, episodes=3)
+    with WorkerPolicy(sub, "value_s0", Limits(step_s=30, load_s=60)) as remote:
+        assert remote.lookahead[0] == "query" and torch.equal(remote.lookahead[1], model.actions)
+        res = evaluate_crowdnav(remote, short, episodes=3)
+    assert res["scenes"] == local["scenes"] and res["privileged"] is True and res["lookahead"] == "query"

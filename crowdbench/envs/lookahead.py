@@ -116,3 +116,25 @@ def lookahead_observation(world, actions: torch.Tensor, model: str) -> dict[str,
     return {"cand_robot": robot.unsqueeze(1), "cand_reward": c["reward"].unsqueeze(1), "cand_done": c["done"].unsqueeze(1),
             "cand_humans": humans.unsqueeze(1), "cand_humans_mask": c["humans_valid"].unsqueeze(1),
             "cand_running": world.outcome[:, :1] == RUNNING}
+
+
+def placeholder_candidates(obs: dict, actions: torch.Tensor, dt: float) -> dict[str, torch.Tensor]:
+    """Lookahead keys of the right shapes for an observation that has none (the harness's smoke test of a
+    submission before any world exists): every action from the robot's origin, the humans held still."""
+    robot, humans = obs["robot"], obs["humans"]
+    B, K = robot.shape[0], actions.shape[0]
+    moves = torch.cat((actions * dt, actions), -1).expand(B, 1, K, 4)
+    return {"cand_robot": moves.clone(), "cand_reward": torch.zeros(B, 1, K), "cand_done": torch.zeros(B, 1, K, dtype=torch.bool),
+            "cand_humans": humans.clone(), "cand_humans_mask": obs["humans_mask"].clone(),
+            "cand_running": torch.ones(B, 1, dtype=torch.bool)}
+
+
+def check_lookahead(model, actions, limit: int = 1024) -> tuple[str, torch.Tensor]:
+    """A policy's declared lookahead, as a worker reports it: a known model and ``[K, 2]`` finite actions
+    (``K <= limit``); ValueError otherwise."""
+    if model not in MODELS:
+        raise ValueError(f"lookahead model {str(model)[:40]!r} is not one of {', '.join(MODELS)}")
+    acts = torch.as_tensor(actions, dtype=torch.float32)
+    if acts.ndim != 2 or acts.shape[1] != 2 or not 1 <= acts.shape[0] <= limit or not torch.isfinite(acts).all():
+        raise ValueError(f"lookahead actions must be [K, 2] finite with 1 <= K <= {limit}")
+    return model, acts
