@@ -16,8 +16,14 @@ from crowdbench.envs.core import SUCCESS
 from crowdbench.envs.crowdnav import CrowdNavConfig
 from crowdbench.envs.factory import crowdnav_world
 from crowdbench.envs.lookahead import action_set, candidates, lookahead_observation, next_humans
-from crowdbench.models.value_nets import (CADRLValue, LSTMRLValue, SARLValue, joint_state, net_input,
-                                          occupancy_maps)
+from crowdbench.models.value_nets import (
+    CADRLValue,
+    LSTMRLValue,
+    SARLValue,
+    joint_state,
+    net_input,
+    occupancy_maps,
+)
 
 
 def crowd_world(n_cases=6, steps=6, visible=False, seed=0):
@@ -72,7 +78,7 @@ def test_query_next_humans_are_the_worlds_bit_for_bit():
     world = crowd_world(steps=3)
     g = torch.Generator().manual_seed(1)
     for _ in range(8):
-        pos, vel, valid = next_humans(world, "query")
+        pos, vel, _ = next_humans(world, "query")
         before = world.humans()[0].clone()
         world.step(torch.rand(world.B, 1, 2, generator=g) * 2 - 1)
         assert torch.equal(pos, world.humans()[0]) and torch.equal(vel, world.humans()[1])

@@ -281,25 +281,25 @@ def train_value(cfg, out_dir, log=print) -> dict:
     sampler = scenario.sampler(int(cfg.seed))
     model = ValueModel(a, cfg.env)
     memory = make_memory(int(a.capacity), int(a.batch_size))
-    logf = open(out_dir / "train_log.jsonl", "a")
+    log_path = out_dir / "train_log.jsonl"
 
     def record(d):
-        logf.write(json.dumps(d) + "\n")
-        logf.flush()
+        with open(log_path, "a") as f:  # a line per round: readable while the run goes on
+            f.write(json.dumps(d) + "\n")
         log(d)
 
     def save(name: str, wall: float, frames: int, episodes: int) -> None:
         # "actor": what acts is the value network (the checkpoint loader's required field holds it)
-        save_checkpoint(out_dir / name, {"config": OmegaConf.to_container(cfg, resolve=True), "actor": model.net.state_dict(),
-                                         "wall_time_s": wall, "frames": frames, "episodes": episodes})
+        save_checkpoint(out_dir / name, {"config": OmegaConf.to_container(cfg, resolve=True),
+                                         "actor": model.net.state_dict(), "wall_time_s": wall, "frames": frames,
+                                         "episodes": episodes})
 
     t0 = time.perf_counter()
     il = imitation(cfg, model, world, sampler, memory, record) if a.il_episodes else {}
-    save("checkpoint_il.pt", time.perf_counter() - t0, il.get("il_frames", 0), 0)  # the imitation network alone
+    save("checkpoint_il.pt", time.perf_counter() - t0, il.get("il_frames", 0), 0)  # imitation alone
     rl = v_learning(cfg, model, world, sampler, memory, record, scenario.test_list("val"))
     wall = time.perf_counter() - t0
     stats = {"il": il, "rl": rl, "wall_time_s": wall, "privileged": model.lookahead == "query"}
     save("checkpoint.pt", wall, il.get("il_frames", 0) + rl.get("frames", 0), rl.get("episodes", 0))
     record({"done": True, "wall_time_s": wall})
-    logf.close()
     return stats
