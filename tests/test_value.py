@@ -367,3 +367,29 @@ def test_a_value_submission_in_a_worker_gives_the_in_process_outcomes(tmp_path):
         assert remote.lookahead[0] == "query" and torch.equal(remote.lookahead[1], model.actions)
         res = evaluate_crowdnav(remote, short, episodes=3)
     assert res["scenes"] == local["scenes"] and res["privileged"] is True and res["lookahead"] == "query"
+
+
+@pytest.mark.parametrize("name", ["gatedgcn", "rgl"])
+def test_an_existing_encoder_as_the_value_network(name):
+    """``algo.net=encoder``: the encoder reads the joint state as its observation (robot at the origin, goal at
+    (dg, 0)); its value equals the encoder + head on that observation built by hand, and is permutation-invariant."""
+    import yaml
+
+    from crowdbench.cli import CONFIG_DIR
+    from crowdbench.models.value_nets import EncoderValue
+
+    torch.manual_seed(0)
+    net = EncoderValue(yaml.safe_load((CONFIG_DIR / "encoder" / f"{name}.yaml").read_text()))
+    rp, rv, goal, hp, hv = random_states()
+    x = joint_state(rp, rv, goal, hp, hv, 0.3, 0.3, 1.0)
+    mask = torch.ones(4, 5, dtype=torch.bool)
+    with torch.no_grad():
+        v = net(x, mask)
+        for b in range(4):
+            u = (goal[b] - rp[b]) / (goal[b] - rp[b]).norm()
+            rot = lambda w: torch.stack((w[..., 0] * u[0] + w[..., 1] * u[1], w[..., 1] * u[0] - w[..., 0] * u[1]), -1)
+            robot = torch.cat((torch.zeros(2), rot(rv[b]), (goal[b] - rp[b]).norm().reshape(1), torch.zeros(1)))
+            humans = torch.cat((rot(hp[b] - rp[b]), rot(hv[b])), -1)
+            ref = net.head(net.encoder(robot[None], humans[None], mask[:1])[1])
+            assert torch.allclose(v[b], ref[0], atol=1e-5)
+        assert torch.allclose(net(x[:, [4, 2, 0, 3, 1]], mask), v, atol=1e-5)

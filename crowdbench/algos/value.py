@@ -29,7 +29,7 @@ class ValueConfig:
     """``algo=value`` (crowdbench/conf/algo/value.yaml); defaults are CrowdNav's ``train.config`` / ``policy.config``."""
 
     name: str = bounded("value", choices=("value",))
-    net: str = bounded("sarl", choices=NETS)
+    net: str = bounded("sarl", choices=NETS)  # encoder: the run's encoder group (encoder=gatedgcn, ...) as V
     lookahead: str = bounded("query", choices=MODELS)  # query: PRIVILEGED (the simulator's next human states)
     kinematics: str = bounded("holonomic", choices=("holonomic", "unicycle"))
     speeds: int = bounded(5, ge=1)
@@ -75,14 +75,15 @@ def gamma_bar(gamma: float, dt: float, v_pref: float) -> float:
 class ValueModel:
     """A value network with what it needs to read observations: the action set, radii, ``v_pref``, discount."""
 
-    def __init__(self, a, env_cfg):
+    def __init__(self, a, env_cfg, encoder_cfg: dict | None = None):
         self.net_name, self.lookahead = str(a.net), str(a.lookahead)
         self.v_pref, self.dt = float(env_cfg.v_max), float(env_cfg.dt)
         self.radii = (float(env_cfg.robot_radius), float(env_cfg.human_radius))
         self.actions = action_set(self.v_pref, int(a.speeds), int(a.headings), str(a.kinematics))
         self.gamma_bar = gamma_bar(float(a.gamma), self.dt, self.v_pref)
         self.terminal_value = bool(a.terminal_value)
-        self.net = build_value_net(self.net_name)
+        self.net = build_value_net(self.net_name, encoder_cfg)
+        self.label = encoder_cfg["name"] if self.net_name == "encoder" else self.net_name  # for results
 
     def state(self, obs) -> tuple[torch.Tensor, torch.Tensor]:
         """``(input [B, M, D], mask [B, M])`` of the current state from observations ``robot [B, 1, 6]``,
@@ -124,7 +125,7 @@ class ValuePolicy(Policy):
         self.lookahead = (model.lookahead, model.actions)
         self.privileged_lookahead = model.lookahead in PRIVILEGED_MODELS
         tag = " (privileged)" if self.privileged_lookahead else ""
-        self.name = name or f"value-{model.net_name}-{model.lookahead}{tag}"
+        self.name = name or f"value-{model.label}-{model.lookahead}{tag}"
 
     @torch.no_grad()
     def act(self, td: TensorDict) -> torch.Tensor:
@@ -141,7 +142,7 @@ def policy_from_state(state: dict) -> ValuePolicy:
     from types import SimpleNamespace
 
     cfg = state["config"]
-    model = ValueModel(SimpleNamespace(**cfg["algo"]), SimpleNamespace(**cfg["env"]))
+    model = ValueModel(SimpleNamespace(**cfg["algo"]), SimpleNamespace(**cfg["env"]), cfg.get("encoder"))
     model.net.load_state_dict(state["actor"])
     return ValuePolicy(model)
 

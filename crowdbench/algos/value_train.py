@@ -279,7 +279,7 @@ def train_value(cfg, out_dir, log=print) -> dict:
     a = cfg.algo
     world, scenario = make_world(cfg.env, int(a.batch))
     sampler = scenario.sampler(int(cfg.seed))
-    model = ValueModel(a, cfg.env)
+    model = ValueModel(a, cfg.env, OmegaConf.to_container(cfg.encoder, resolve=True))
     memory = make_memory(int(a.capacity), int(a.batch_size))
     log_path = out_dir / "train_log.jsonl"
 

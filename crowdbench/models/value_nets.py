@@ -15,6 +15,8 @@ humans) to ``[N, 1]`` values:
 - ``sarl``: pairwise MLP (150, 100) -> interaction MLP (100, 50); attention MLP (100, 100, 1) on each pair
   feature and their mean (the global state); value MLP (150, 100, 100, 1) on the robot's 6 numbers and the
   attention-weighted interaction features;
+- ``encoder``: any registered encoder of :mod:`crowdbench.models` (``encoder=gatedgcn``, ...) with a value head
+  (:class:`EncoderValue`);
 - ``lm_sarl``: SARL whose pairwise input also holds each human's local map (4 x 4 cells of 1 m around the
   human, in the frame of its velocity: occupied, mean vx, mean vy of the other humans in the cell).
 
@@ -30,7 +32,7 @@ from crowdbench.envs.core import to_local
 from crowdbench.models.sarl import masked_softmax, relu_mlp
 
 SELF_DIM, JOINT_DIM = 6, 13
-NETS = ("cadrl", "lstm_rl", "sarl", "lm_sarl")
+NETS = ("cadrl", "lstm_rl", "sarl", "lm_sarl", "encoder")
 
 
 def _unit(v: torch.Tensor) -> torch.Tensor:
@@ -130,7 +132,32 @@ class SARLValue(nn.Module):
         return self.mlp3(torch.cat((state[:, 0, :SELF_DIM], c), -1))
 
 
-def build_value_net(name: str) -> nn.Module:
+class EncoderValue(nn.Module):
+    """Any registered encoder (``crowdbench/models``: gatedgcn, gcn, rgl, gat, dsrnn, ...) as V: the joint state
+    read back as the encoder's observation in the frame of the joint state (robot at the origin with velocity
+    ``(vx, vy)``, goal at ``(dg, 0)``; the humans' positions and velocities), then ``MLP(D, 1)`` on ``robot_h``."""
+
+    def __init__(self, encoder_cfg: dict):
+        super().__init__()
+        from crowdbench.models import make_encoder
+
+        cfg = dict(encoder_cfg)
+        self.encoder = make_encoder(cfg.pop("name"), **cfg)
+        self.head = mlp(self.encoder.out_dim, (self.encoder.out_dim, 1))
+
+    def forward(self, state, mask):
+        z = state.new_zeros(state.shape[0], 1)
+        robot = torch.cat((z, z, state[:, 0, 4:6], state[:, 0, 0:1], z), -1)
+        humans = state[..., 6:10] * mask.unsqueeze(-1)
+        return self.head(self.encoder(robot, humans, mask)[1])
+
+
+def build_value_net(name: str, encoder_cfg: dict | None = None) -> nn.Module:
+    """Value network ``name`` (:data:`NETS`); ``encoder``: the run's encoder (``encoder_cfg``) with a value head."""
+    if name == "encoder":
+        if encoder_cfg is None:
+            raise ValueError("algo.net=encoder needs the encoder config (the encoder group)")
+        return EncoderValue(encoder_cfg)
     if name == "cadrl":
         return CADRLValue()
     if name == "lstm_rl":
