@@ -387,7 +387,9 @@ def test_an_existing_encoder_as_the_value_network(name):
         v = net(x, mask)
         for b in range(4):
             u = (goal[b] - rp[b]) / (goal[b] - rp[b]).norm()
-            rot = lambda w: torch.stack((w[..., 0] * u[0] + w[..., 1] * u[1], w[..., 1] * u[0] - w[..., 0] * u[1]), -1)
+            def rot(w, u=u):
+                return torch.stack((w[..., 0] * u[0] + w[..., 1] * u[1], w[..., 1] * u[0] - w[..., 0] * u[1]), -1)
+
             robot = torch.cat((torch.zeros(2), rot(rv[b]), (goal[b] - rp[b]).norm().reshape(1), torch.zeros(1)))
             humans = torch.cat((rot(hp[b] - rp[b]), rot(hv[b])), -1)
             ref = net.head(net.encoder(robot[None], humans[None], mask[:1])[1])
