@@ -141,6 +141,17 @@ def run_one(cfg, overrides: list[str]) -> dict:
     check_viz(cfg)
     if cfg.resume and not cfg.out:
         raise UsageError("resume=true needs out=<run directory> (the run to continue)")
+    if cfg.algo.name == "value":  # value-based lookahead: its own loop and policy (crowdbench/cli_value.py)
+        from crowdbench.cli_value import run_value
+
+        if cfg.resume:
+            raise UsageError("algo=value does not resume yet (resume=true)")
+        out = output_dir(cfg, "run", f"value-{cfg.algo.net}-{cfg.algo.lookahead}")
+        with claimed_output(out):
+            try:
+                return run_value(cfg, out, overrides)
+            except ValueError as e:
+                raise UsageError(str(e)) from None
     out = output_dir(cfg, "run", f"{cfg.algo.name}-{cfg.encoder.name}")
     try:
         probe = make_probe(cfg)

@@ -16,6 +16,7 @@ import torch
 from crowdbench.data.scenes import check_scene
 from crowdbench.envs.core import OUTCOMES, RUNNING, SUCCESS, SimConfig
 from crowdbench.envs.factory import replay_world
+from crowdbench.envs.lookahead import lookahead_observation
 from crowdbench.envs.policy import ACTION, OBS, Policy
 from crowdbench.envs.protocol import (
     PAPER_SCENES,
@@ -87,8 +88,12 @@ def drive(env: CrowdEnv, policy: Policy, recorder=None, on_reset=None, on_step=N
         policy.plan(world if privileged_view is None else privileged_view)
     if on_reset is not None:
         on_reset(world)
+    look = getattr(policy, "lookahead", None)  # (model, actions): a value-lookahead policy (crowdbench/algos/value.py)
     for _ in range(world.cfg.time_limit):
         obs = td.select(OBS)
+        if look is not None:  # the candidates are computed here, on the harness side, from the world
+            for key, value in lookahead_observation(world, look[1], look[0]).items():
+                obs.set(OBS + (key,), value)
         action = policy.act(obs)
         if recorder is not None:
             recorder(world, obs, action)

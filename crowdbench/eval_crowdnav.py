@@ -72,6 +72,11 @@ def evaluate_crowdnav(policy: Policy, cfg: CrowdNavConfig, settings=None, episod
                "humans": cfg.humans, "robot_visible": cfg.robot_visible, "scenes": {}, "lists": {}}
     if privileged:
         results["privileged"] = True
+    look = getattr(policy, "lookahead", None)
+    if look is not None:  # a value-lookahead policy: which model of the humans' next state it was handed
+        results["lookahead"] = look[0]
+        if getattr(policy, "privileged_lookahead", False):
+            results["privileged"] = True  # the simulator's true next human states (CrowdNav's query_env)
     rows = []
     for name, (scenario, n) in zip(settings, parsed, strict=True):
         c = replace(cfg, scenario=scenario, n_humans=n, frame=policy.frame)

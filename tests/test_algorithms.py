@@ -68,7 +68,7 @@ def test_a_registered_algorithm_is_picked_up_by_the_cli(tmp_path, capsys):
 
 
 def test_unknown_algorithms_and_keys_are_one_line_errors(tmp_path, capsys):
-    with pytest.raises(ValueError, match="^unknown algo 'dqn'; valid: td3, ddpg, sac, ppo$"):
+    with pytest.raises(ValueError, match="^unknown algo 'dqn'; valid: td3, ddpg, sac, ppo, value$"):
         entry("dqn")
     assert main(["run", "algo=dqn", f"out={tmp_path / 'a'}"]) == 2
     err = capsys.readouterr().err

@@ -180,6 +180,13 @@ def policy_from_checkpoint(path: Path) -> LearnedPolicy:
 
     state = load_checkpoint(path)
     cfg = state["config"]
+    if cfg.get("algo", {}).get("name") == "value":  # a value network acting by lookahead (algos/value.py)
+        from crowdbench.algos.value import policy_from_state
+
+        try:
+            return policy_from_state(state)
+        except (KeyError, RuntimeError, ValueError, TypeError) as e:
+            raise CheckpointError(f"checkpoint {path} does not fit its model: {' '.join(str(e).split())[:200]}") from None
     try:
         actor = build_actor(cfg["algo"]["name"], dict(cfg["encoder"]), cfg["env"]["v_max"],
                             squash=cfg["algo"].get("actor_squash", "radial"))

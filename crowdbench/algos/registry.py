@@ -16,8 +16,9 @@ from __future__ import annotations
 import importlib
 from dataclasses import dataclass
 
-# what acting needs: a deterministic actor (TD3, DDPG) or a TanhNormal one acting by its mode (SAC, PPO)
-ACTOR_KINDS = ("deterministic", "tanh_normal")
+# what acting needs: a deterministic actor (TD3, DDPG) or a TanhNormal one acting by its mode (SAC, PPO);
+# "value": no actor, a state-value network acting by one-step lookahead (algo=value, its own loop and policy)
+ACTOR_KINDS = ("deterministic", "tanh_normal", "value")
 
 
 @dataclass(frozen=True)
@@ -33,6 +34,7 @@ BUILTIN = {
     "ddpg": AlgorithmEntry("ddpg", "deterministic", "crowdbench.algos.ddpg"),
     "sac": AlgorithmEntry("sac", "tanh_normal", "crowdbench.algos.sac"),
     "ppo": AlgorithmEntry("ppo", "tanh_normal", "crowdbench.algos.ppo"),
+    "value": AlgorithmEntry("value", "value", "crowdbench.algos.value"),
 }
 _ENTRIES: dict[str, AlgorithmEntry] = dict(BUILTIN)
 

@@ -99,8 +99,16 @@ def learned_policy(sub: Submission):
         policy = policies.from_checkpoint(sub.checkpoint)
     except policies.PolicyError as e:
         raise SubmissionError(path, "checkpoint", str(e)) from None
+    obs = dummy_obs()
+    look = getattr(policy, "lookahead", None)
+    if look is not None:  # a value-lookahead policy reads candidates with its observation
+        from crowdbench.envs.lookahead import placeholder_candidates
+        from crowdbench.envs.policy import OBS
+
+        for key, value in placeholder_candidates(obs[OBS], look[1], float(cfg["env"].get("dt", 0.25))).items():
+            obs.set(OBS + (key,), value)
     try:
-        out = policy.act(dummy_obs())
+        out = policy.act(obs)
     except Exception as e:  # noqa: BLE001 - a model that cannot act on an observation is rejected
         raise SubmissionError(path, "checkpoint", f"the model fails on an observation: {type(e).__name__}: {e}") \
             from None

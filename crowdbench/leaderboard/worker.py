@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from crowdbench.envs.lookahead import PRIVILEGED_MODELS, check_lookahead
 from crowdbench.envs.policy import OBS, Policy, obs_tensordict
 from crowdbench.leaderboard import wire
 from crowdbench.leaderboard.sandbox import DEFAULT_LIMITS, Limits, apply_limits, command, environment
@@ -82,6 +83,12 @@ class WorkerPolicy(Policy):
         if header.get("frame") not in FRAMES:
             raise self._fail(f"the policy's frame {str(header.get('frame'))[:40]!r} is not one of {', '.join(FRAMES)}")
         self.frame = header["frame"]
+        if "lookahead" in header:  # the candidates the evaluation loop hands over with each observation
+            try:
+                self.lookahead = check_lookahead(header["lookahead"], header.get("actions"))
+            except (ValueError, TypeError, RuntimeError) as e:
+                raise self._fail(f"the policy's lookahead: {e}") from None
+            self.privileged_lookahead = self.lookahead[0] in PRIVILEGED_MODELS
 
     def __enter__(self):
         return self
@@ -178,7 +185,11 @@ def _serve(read_fd: int, write_fd: int) -> None:
     except SubmissionError as e:
         wire.send(write_fd, {"op": "error", "field": e.field, "message": e.message})
         return
-    wire.send(write_fd, {"op": "ready", "frame": policy.frame})
+    ready = {"op": "ready", "frame": policy.frame}
+    look = getattr(policy, "lookahead", None)
+    if look is not None:  # a value-lookahead policy: the harness computes its candidates (envs/lookahead.py)
+        ready["lookahead"], ready["actions"] = look[0], look[1].tolist()
+    wire.send(write_fd, ready)
     while True:
         header, arrays = wire.recv(read_fd)
         if header["op"] == "act":

@@ -1,0 +1,305 @@
+"""Training of ``algo=value`` (:mod:`crowdbench.algos.value`), CrowdNav's recipe batched over ``B`` environments.
+
+1. Imitation: ``il_episodes`` episodes of ORCA (radius inflated by ``il_safety_space``, CrowdNav's demonstrator)
+   on training cases; each state of an episode that ends in success or collision goes to the memory with its
+   discounted return ``sum_t gamma_bar^(t - i) r_t``; V is fitted for ``il_epochs`` epochs (SGD, lr 0.01).
+2. Deep V-learning: rounds of ``B`` epsilon-greedy episodes (epsilon by episode number: 0.5 -> 0.1 over 4,000);
+   every state of a finished success/collision episode goes to the memory with the target
+   ``r_t + gamma_bar V_target(s_{t+1})`` (``r_t`` on its last step), computed with the target network when the
+   episode ends; ``train_batches`` gradient steps of ``batch_size`` per episode; the target network is
+   refreshed every ``target_update`` episodes. Timeouts are not stored (CrowdNav's explorer).
+
+Rounds run their ``B`` episodes together; a finished environment waits for the round's end. The memory is a
+TorchRL ``ReplayBuffer`` on a ``LazyTensorStorage`` (oldest pairs overwritten past ``capacity``).
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+
+import torch
+from tensordict import TensorDict
+from torchrl.data import LazyTensorStorage, ReplayBuffer
+from torchrl.data.replay_buffers import RandomSampler
+
+from crowdbench.algos.value import ValueModel, epsilon
+from crowdbench.envs.core import COLLISION, RUNNING, SUCCESS, TIMEOUT
+from crowdbench.envs.lookahead import lookahead_observation
+
+
+def discounted_returns(reward: torch.Tensor, g: float) -> torch.Tensor:
+    """``[T, B]`` returns-to-go ``sum_{t >= i} g^(t - i) r_t`` (rewards after an episode's end are 0)."""
+    out = torch.zeros_like(reward)
+    acc = torch.zeros_like(reward[0])
+    for t in range(reward.shape[0] - 1, -1, -1):
+        acc = reward[t] + g * acc
+        out[t] = acc
+    return out
+
+
+def td_targets(reward: torch.Tensor, next_value: torch.Tensor, last: torch.Tensor, g: float) -> torch.Tensor:
+    """``[T, B]`` CrowdNav's V-targets: ``r_t + g V'(s_{t+1})``, ``r_t`` where ``last`` (the episode's final step)."""
+    return reward + g * next_value * ~last
+
+
+def run_round(model: ValueModel, world, episodes: dict, act) -> dict[str, torch.Tensor]:
+    """``B`` episodes of ``world`` from ``episodes``; ``act(obs, running [B]) -> action [B, 1, 2]``.
+    Returns the net inputs ``x [T, B, M, D]``, ``mask [T, B, M]``, ``reward [T, B]``, ``active [T, B]`` and
+    ``outcome [B]``."""
+    B = world.B
+    world.reset(torch.ones(B, dtype=torch.bool), episodes)
+    xs, masks, rewards, actives = [], [], [], []
+    for _ in range(world.cfg.time_limit):
+        running = world.outcome[:, 0] == RUNNING
+        if not running.any():
+            break
+        obs = world.observe()
+        x, mask = model.state(obs)
+        action = act(obs, running)
+        info = world.step(action)
+        xs.append(x)
+        masks.append(mask)
+        rewards.append(info.reward[:, 0])
+        actives.append(info.active[:, 0])
+    return {"x": torch.stack(xs), "mask": torch.stack(masks), "reward": torch.stack(rewards),
+            "active": torch.stack(actives), "outcome": world.outcome[:, 0].clone()}
+
+
+def lookahead_act(model: ValueModel, world, eps: torch.Tensor | None, gen: torch.Generator):
+    """The acting function of :func:`run_round`: greedy lookahead on the running environments (one forward
+    pass), a uniformly random action with probability ``eps [B]`` (None: greedy)."""
+    K = len(model.actions)
+
+    def act(obs, running):
+        idx = torch.zeros(world.B, dtype=torch.long)
+        rows = running.nonzero().squeeze(-1)
+        look = lookahead_observation(world, model.actions, model.lookahead)
+        view = {k: v[rows] for k, v in {**obs, **look}.items()}
+        with torch.no_grad():
+            idx[rows] = model.candidate_values(view).argmax(-1)
+        if eps is not None:
+            explore = torch.rand(world.B, generator=gen, dtype=torch.float64) < eps
+            idx = torch.where(explore, torch.randint(0, K, (world.B,), generator=gen), idx)
+        return model.actions[idx].unsqueeze(1)
+
+    return act
+
+
+def store(memory: ReplayBuffer, r: dict, values: torch.Tensor, timeouts: bool = False) -> int:
+    """Push the ``(state, value)`` pairs of the round's success and collision episodes (CrowdNav's explorer);
+    ``timeouts``: those of timed-out episodes too, but their last step (truncated, not terminal: its
+    bootstrapped target would need the state after it). Returns how many."""
+    keep = (r["outcome"] == SUCCESS) | (r["outcome"] == COLLISION)
+    sel = r["active"] & keep.unsqueeze(0)  # [T, B]
+    if timeouts:
+        cut = (r["outcome"] == TIMEOUT).unsqueeze(0)
+        sel = sel | r["active"] & cut & ~last_steps(r["active"])
+    n = int(sel.sum())
+    if n:
+        memory.extend(TensorDict({"x": r["x"][sel], "mask": r["mask"][sel], "value": values[sel].unsqueeze(-1)},
+                                 batch_size=[n]))
+    return n
+
+
+def last_steps(active: torch.Tensor) -> torch.Tensor:
+    """``[T, B]``: the final active step of each episode."""
+    nxt = torch.cat((active[1:], torch.zeros_like(active[:1])))
+    return active & ~nxt
+
+
+@torch.no_grad()
+def round_targets(r: dict, target_net, g: float) -> torch.Tensor:
+    """The V-targets of a round's states with the target network (one forward pass over its states)."""
+    T, B = r["reward"].shape
+    v = target_net(r["x"].flatten(0, 1), r["mask"].flatten(0, 1)).reshape(T, B)
+    nxt = torch.cat((v[1:], torch.zeros_like(v[:1])))
+    return td_targets(r["reward"], nxt, last_steps(r["active"]), g)
+
+
+def make_memory(capacity: int, batch_size: int) -> ReplayBuffer:
+    return ReplayBuffer(storage=LazyTensorStorage(capacity), sampler=RandomSampler(), batch_size=batch_size)
+
+
+def make_optimizer(net, kind: str, lr: float):
+    if kind == "adam":
+        return torch.optim.Adam(net.parameters(), lr=lr)
+    return torch.optim.SGD(net.parameters(), lr=lr, momentum=0.9)
+
+
+def fit(net, memory: ReplayBuffer, opt, steps: int) -> float:
+    """``steps`` gradient steps of MSE on random batches of the memory; the mean loss."""
+    total = 0.0
+    for _ in range(steps):
+        b = memory.sample()
+        loss = torch.nn.functional.mse_loss(net(b["x"], b["mask"]), b["value"])
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        total += loss.item()
+    return total / max(steps, 1)
+
+
+def demonstrator(cfg):
+    """CrowdNav's imitation policy: ORCA with the env's settings and the human radius inflated by
+    ``il_safety_space`` (the robot is invisible: ORCA's reciprocity would otherwise leave it half the avoiding)."""
+    from crowdbench.baselines.orca import ORCA
+
+    o = cfg.orca
+    return ORCA(v_max=cfg.env.v_max, dt=cfg.env.dt, robot_radius=cfg.env.robot_radius,
+                human_radius=cfg.env.human_radius, safety_margin=float(o.safety_margin) + float(cfg.algo.il_safety_space),
+                neighbor_dist=o.neighbor_dist, max_neighbors=o.max_neighbors, time_horizon=o.time_horizon,
+                perturb=o.perturb, pref_rule=o.pref_rule, seed=int(cfg.seed))
+
+
+def imitation(cfg, model: ValueModel, world, sampler, memory: ReplayBuffer, log) -> dict:
+    """Phase 1: ORCA demonstrations -> discounted returns -> V regression."""
+    from crowdbench.envs.policy import obs_tensordict
+
+    a, t0 = cfg.algo, time.perf_counter()
+    orca = demonstrator(cfg)
+    act = lambda obs, running: orca.act(obs_tensordict(obs, world.B))
+    done = success = pairs = frames = 0
+    while done < a.il_episodes:
+        r = run_round(model, world, sampler(world.B), act)
+        frames += int(r["active"].sum())
+        pairs += store(memory, r, discounted_returns(r["reward"], model.gamma_bar))
+        success += int((r["outcome"] == SUCCESS).sum())
+        done += world.B
+    collect_s = time.perf_counter() - t0
+    opt = make_optimizer(model.net, a.il_optimizer, a.il_lr)
+    steps = a.il_steps or a.il_epochs * -(-len(memory) // a.batch_size)  # CrowdNav: epochs over the memory
+    loss = fit(model.net, memory, opt, steps) if len(memory) else float("nan")
+    out = {"il_episodes": done, "il_frames": frames, "il_success": success / max(done, 1), "il_pairs": pairs, "il_loss": loss,
+           "il_collect_s": collect_s, "il_fit_s": time.perf_counter() - t0 - collect_s}
+    log(out)
+    return out
+
+
+def validate(model: ValueModel, world, episodes: dict) -> dict:
+    """Greedy rounds over a fixed list (``world.B`` environments at a time): success, collision, timeout,
+    mean navigation time of the successes."""
+    E, outcomes, times = len(episodes["start"]), [], []
+    gen = torch.Generator().manual_seed(0)  # unused by greedy acting
+    for s in range(0, E, world.B):
+        part = {k: v[s:s + world.B] for k, v in episodes.items()}
+        n = len(part["start"])
+        if n < world.B:  # pad the last round with copies of its first episode, then drop them
+            part = {k: torch.cat((v, v[:1].expand(world.B - n, *v.shape[1:]))) for k, v in part.items()}
+        r = run_round(model, world, part, lookahead_act(model, world, None, gen))
+        outcomes.append(r["outcome"][:n])
+        times.append(r["active"][:, :n].sum(0) * world.cfg.dt)
+    o, t = torch.cat(outcomes), torch.cat(times)
+    ok = o == SUCCESS
+    return {"success": float(ok.float().mean()), "collision": float((o == COLLISION).float().mean()),
+            "timeout": float((~ok & (o != COLLISION)).float().mean()),
+            "nav_time": float(t[ok].mean()) if ok.any() else float("nan")}
+
+
+def v_learning(cfg, model: ValueModel, world, sampler, memory: ReplayBuffer, log, val_episodes=None) -> dict:
+    """Phase 2: epsilon-greedy deep V-learning (rounds of ``B`` episodes) until ``episodes`` or ``max_minutes``."""
+    a, g, B = cfg.algo, model.gamma_bar, world.B
+    gen = torch.Generator().manual_seed(int(cfg.seed) + 1)
+    target = copy.deepcopy(model.net)
+    opt = make_optimizer(model.net, a.optimizer, a.lr)
+    t0, done, credit, frames, last = time.perf_counter(), 0, 0.0, 0, {}
+    best = Best(model, world, val_episodes if a.keep_best else None, log)  # scores the imitation network first
+    while done < a.episodes:
+        if a.max_minutes and time.perf_counter() - t0 > 60 * a.max_minutes:
+            break
+        eps = epsilon(done + torch.arange(B), a.epsilon_start, a.epsilon_end, a.epsilon_decay)
+        model.net.eval()
+        r = run_round(model, world, sampler(B), lookahead_act(model, world, eps, gen))
+        stored = store(memory, r, round_targets(r, target, g), bool(a.store_timeouts))
+        frames += int(r["active"].sum())
+        credit += a.train_batches * B  # gradient steps owed: train_batches per finished episode
+        steps = int(credit)
+        credit -= steps
+        model.net.train()
+        loss = fit(model.net, memory, opt, steps) if len(memory) >= a.batch_size else float("nan")
+        before, done = done, done + B
+        if done // a.target_update > before // a.target_update:
+            target.load_state_dict(model.net.state_dict())
+        o = r["outcome"]
+        last = {"episodes": done, "frames": frames, "epsilon": float(eps[0]), "success": float((o == SUCCESS).float().mean()),
+                "collision": float((o == COLLISION).float().mean()), "loss": loss, "stored": stored,
+                "wall_s": time.perf_counter() - t0}
+        if val_episodes is not None and a.val_every and done // a.val_every > before // a.val_every:
+            model.net.eval()
+            val = validate(model, world, val_episodes)
+            last.update({f"val_{k}": v for k, v in val.items()})
+            best.offer(val, done)
+        log(last)
+    model.net.eval()
+    best.restore()
+    return {**last, "selected_episode": best.episode}
+
+
+class Best:
+    """``algo.keep_best``: the network of the best validation (success, then the shorter navigation time),
+    the imitation network included; restored at the end. Selection is on CrowdNav's 100 validation cases,
+    never the test cases. ``episodes=None``: inactive, the final network is kept."""
+
+    def __init__(self, model: ValueModel, world, episodes, log):
+        self.model, self.active = model, episodes is not None
+        self.state, self.key, self.episode = None, None, None
+        if self.active:
+            val = validate(model, world, episodes)
+            log({"episodes": 0, **{f"val_{k}": v for k, v in val.items()}})
+            self.offer(val, 0)
+
+    def offer(self, val: dict, episode: int) -> None:
+        key = (val["success"], -val["nav_time"] if val["success"] > 0 else 0.0)
+        if self.active and (self.key is None or key > self.key):
+            self.key, self.episode = key, episode
+            self.state = copy.deepcopy(self.model.net.state_dict())
+
+    def restore(self) -> None:
+        if self.state is not None:
+            self.model.net.load_state_dict(self.state)
+
+
+def train_value(cfg, out_dir, log=print) -> dict:
+    """Imitation then deep V-learning per ``cfg`` (``algo=value``, ``env=crowdnav``); writes
+    ``out_dir/checkpoint.pt`` (config + the value network as ``actor``) and ``out_dir/train_log.jsonl``; returns the stats."""
+    import json
+    from pathlib import Path
+
+    from omegaconf import OmegaConf
+
+    from crowdbench.algos.checkpoint import save_checkpoint
+    from crowdbench.envs.factory import env_name, make_world
+
+    if env_name(cfg.env) != "crowdnav":
+        raise ValueError("algo=value runs on env=crowdnav (its reward and test cases are CrowdNav's)")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    torch.set_num_threads(int(cfg.get("cpus", 1)))
+    torch.manual_seed(int(cfg.seed))
+    a = cfg.algo
+    world, scenario = make_world(cfg.env, int(a.batch))
+    sampler = scenario.sampler(int(cfg.seed))
+    model = ValueModel(a, cfg.env, OmegaConf.to_container(cfg.encoder, resolve=True))
+    memory = make_memory(int(a.capacity), int(a.batch_size))
+    log_path = out_dir / "train_log.jsonl"
+
+    def record(d):
+        with open(log_path, "a") as f:  # a line per round: readable while the run goes on
+            f.write(json.dumps(d) + "\n")
+        log(d)
+
+    def save(name: str, wall: float, frames: int, episodes: int) -> None:
+        # "actor": what acts is the value network (the checkpoint loader's required field holds it)
+        save_checkpoint(out_dir / name, {"config": OmegaConf.to_container(cfg, resolve=True),
+                                         "actor": model.net.state_dict(), "wall_time_s": wall, "frames": frames,
+                                         "episodes": episodes})
+
+    t0 = time.perf_counter()
+    il = imitation(cfg, model, world, sampler, memory, record) if a.il_episodes else {}
+    save("checkpoint_il.pt", time.perf_counter() - t0, il.get("il_frames", 0), 0)  # imitation alone
+    rl = v_learning(cfg, model, world, sampler, memory, record, scenario.test_list("val"))
+    wall = time.perf_counter() - t0
+    stats = {"il": il, "rl": rl, "wall_time_s": wall, "privileged": model.lookahead == "query"}
+    save("checkpoint.pt", wall, il.get("il_frames", 0) + rl.get("frames", 0), rl.get("episodes", 0))
+    record({"done": True, "wall_time_s": wall})
+    return stats
