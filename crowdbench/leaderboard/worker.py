@@ -29,7 +29,16 @@ import torch
 
 from crowdbench.envs.policy import OBS, Policy, obs_tensordict
 from crowdbench.leaderboard import wire
-from crowdbench.leaderboard.sandbox import DEFAULT_LIMITS, Limits, apply_limits, command, environment
+from crowdbench.leaderboard.sandbox import (
+    DEFAULT_LIMITS,
+    SCRATCH,
+    Limits,
+    apply_limits,
+    command,
+    environment,
+    needed_paths,
+    sandbox_name,
+)
 
 FRAMES = ("rotate", "translate", "world")
 MAX_LINE = 240
@@ -70,11 +79,14 @@ class WorkerPolicy(Policy):
 
     def __init__(self, sub_dir: Path, name: str, limits: Limits = DEFAULT_LIMITS):
         self.name, self.limits, self.steps = name, limits, 0
-        self._scratch = tempfile.TemporaryDirectory(prefix="crowdbench-worker-")
-        scratch = Path(self._scratch.name)
-        self.proc = subprocess.Popen(command(scratch, limits), stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                     stderr=subprocess.PIPE, env=environment(scratch), cwd=scratch,
-                                     start_new_session=True)
+        # confined: the scratch is a tmpfs inside the worker's own mount namespace, never a host directory
+        confined = sandbox_name(limits) == "bubblewrap"
+        self._scratch = None if confined else tempfile.TemporaryDirectory(prefix="crowdbench-worker-")
+        scratch = Path(SCRATCH if confined else self._scratch.name)
+        env = environment(scratch)
+        self.proc = subprocess.Popen(command(limits, needed_paths(Path(sub_dir).resolve(), env)),
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env,
+                                     cwd="/" if confined else scratch, start_new_session=True)
         self._tail = _Tail(self.proc.stderr)
         load = {"op": "load", "dir": str(Path(sub_dir).resolve()), "memory_gb": limits.memory_gb,
                 "cpu_s": limits.cpu_s, "file_mb": limits.file_mb}
