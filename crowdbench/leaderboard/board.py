@@ -17,6 +17,7 @@ from crowdbench.envs.protocol import EVAL_SCENES, PROTOCOL_VERSION
 from crowdbench.fixed_lists import ListError, check_replay
 from crowdbench.leaderboard import render
 from crowdbench.leaderboard.cache import fingerprint
+from crowdbench.leaderboard.entries import entry_problems
 from crowdbench.leaderboard.harness import LauncherError, _evaluate_all
 from crowdbench.leaderboard.sandbox import DEFAULT_LIMITS, Limits, SandboxError, sandbox_name
 from crowdbench.leaderboard.schema import DEFAULT_ROOT, SubmissionError, read_submission
@@ -115,11 +116,16 @@ def run(root: Path = DEFAULT_ROOT, only: list[str] | None = None, check: bool = 
         log(f"crowdbench leaderboard: error: {e}" + (f" (track {track})" if track else ""))
         rejected.append((track, str(e).replace(str(root.resolve()) + "/", "").replace(str(root) + "/", "")))
 
+    subs = []
     for d in dirs:
         try:  # (a learned entry's code is imported only by its worker: crowdbench/leaderboard/worker.py)
-            sub = read_submission(d)
+            subs.append((d, read_submission(d)))
         except SubmissionError as e:
             reject(e, None)
+    conflicts = entry_problems([sub for _, sub in subs])
+    for d, sub in subs:
+        if sub.name in conflicts:
+            reject(conflicts[sub.name], None)
             continue
         for name in TRACK_ORDER:
             track = TRACKS[name]

@@ -73,9 +73,9 @@ def label(group: list[dict], escape: bool = True) -> str:
 
 def group_results(results: list[dict]) -> list[list[dict]]:
     """Results grouped by entry (seeds together), ordered baseline < learned < oracle, then by name."""
-    groups: dict[str, list[dict]] = {}
+    groups: dict[tuple[str, str], list[dict]] = {}
     for r in sorted(results, key=lambda r: r["meta"]["submission"]):
-        groups.setdefault(r["meta"]["entry"], []).append(r)
+        groups.setdefault((r["meta"]["kind"], r["meta"]["entry"]), []).append(r)  # a kind never joins another
     order = {k: i for i, k in enumerate(KINDS)}
     return sorted(groups.values(), key=lambda g: (order[g[0]["meta"]["kind"]], g[0]["meta"]["entry"].lower()))
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import re
 import shutil
+import unicodedata
 from dataclasses import dataclass, field
 from pathlib import Path
 from urllib.parse import urlsplit
@@ -114,6 +115,8 @@ def _text_problem(key: str, v: str) -> str | None:
         return f"must be a non-empty string of at most {limit} characters, got {len(v)}"
     if any(bad_char(c) and not (key in MULTILINE and c in "\n\t") for c in v):
         return f"must be one line of printable text (no newline or control character), got {short(v)}"
+    if key == "entry" and any(unicodedata.category(c) == "Cf" for c in v):  # zero-width, soft hyphen, LRM...
+        return f"must hold no invisible or direction characters (Unicode Cf), got {ascii(v)[:80]}"
     return None
 
 
@@ -317,8 +320,9 @@ def read_submission(sub_dir: Path) -> Submission:
     if sub_dir.is_symlink():
         raise SubmissionError(path, None, "the submission directory is a symlink: it must be a directory")
     data = validate_schema(path, load_yaml(path))
+    # the row label as shown and compared: NFKC (a full-width or ligature form is its plain letters)
     sub = Submission(name=data["name"], dir=sub_dir, yaml_path=path, data=data, kind=data["kind"],
-                     entry=data.get("entry") or data["name"])
+                     entry=unicodedata.normalize("NFKC", data.get("entry") or data["name"]))
     if sub.kind == "learned":
         sub.checkpoint = inside(sub_dir, data.get("checkpoint", "checkpoint.pt"), path, "checkpoint")
         if not sub.checkpoint.is_file():
