@@ -192,6 +192,9 @@ def cmd_leaderboard(args: list[str]) -> int:
                     "processes with bubblewrap (auto: where bwrap works; none: resource limits only)")
     ap.add_argument("--worker-timeout", type=float, default=Limits.step_s, metavar="SECONDS",
                     help=f"a worker's longest answer to one observation batch (default {Limits.step_s:g})")
+    ap.add_argument("--budget-factor", type=float, default=Limits.budget_factor, metavar="X",
+                    help="a learned submission's wall-clock budget per track: X times ORCA's time on the same "
+                         f"track (default {Limits.budget_factor:g}; at least {Limits.budget_floor_s:g} s)")
     ap.add_argument("--worker-memory", type=float, default=Limits.memory_gb, metavar="GB",
                     help=f"a worker's address-space limit (default {Limits.memory_gb:g})")
     ap.add_argument("--readme", type=Path, default=None, help="also regenerate the results block of this file "
@@ -225,7 +228,10 @@ def cmd_leaderboard(args: list[str]) -> int:
         ap.error("--worker-timeout must be in (0, 86400) seconds")
     if not (1 <= a.worker_memory <= 1024):
         ap.error("--worker-memory must be in [1, 1024] GB")
-    limits = Limits(step_s=a.worker_timeout, memory_gb=a.worker_memory, sandbox=a.sandbox)
+    if not (1 <= a.budget_factor <= 10000):  # (also refuses nan)
+        ap.error("--budget-factor must be in [1, 10000]")
+    limits = Limits(step_s=a.worker_timeout, memory_gb=a.worker_memory, sandbox=a.sandbox,
+                    budget_factor=a.budget_factor)
     if a.address and a.launcher != "ray":
         ap.error("--address needs --launcher ray")
     readme = a.readme

@@ -16,10 +16,11 @@ from pathlib import Path
 from crowdbench.envs.protocol import EVAL_SCENES, PROTOCOL_VERSION
 from crowdbench.fixed_lists import ListError, check_replay
 from crowdbench.leaderboard import render
+from crowdbench.leaderboard.budget import with_budgets
 from crowdbench.leaderboard.cache import fingerprint
 from crowdbench.leaderboard.entries import entry_problems
 from crowdbench.leaderboard.harness import LauncherError, _evaluate_all
-from crowdbench.leaderboard.sandbox import DEFAULT_LIMITS, Limits, SandboxError, sandbox_name
+from crowdbench.leaderboard.sandbox import DEFAULT_LIMITS, Limits, SandboxError, confinement, sandbox_name
 from crowdbench.leaderboard.schema import DEFAULT_ROOT, SubmissionError, read_submission
 from crowdbench.leaderboard.track_tables import render_tracks, trained_on
 from crowdbench.leaderboard.tracks import TRACK_ORDER, TRACKS, check_tracks
@@ -89,6 +90,7 @@ def run(root: Path = DEFAULT_ROOT, only: list[str] | None = None, check: bool = 
     except (ValueError, SandboxError) as e:
         log(f"crowdbench leaderboard: error: {e}")
         return 1
+    log(confinement(sandbox, limits))
     sub_root = root / "submissions"
     dirs = sorted(p for p in sub_root.iterdir() if p.is_dir()) if sub_root.is_dir() else []
     if not dirs:
@@ -150,9 +152,9 @@ def run(root: Path = DEFAULT_ROOT, only: list[str] | None = None, check: bool = 
                                           f"(`crowdbench leaderboard --only {d.name} --tracks {name}`)")))
                 continue
             todo.append((d, sub, name, fp, res_path))
-    if any(sub.kind == "learned" for _, sub, _, _, _ in todo):
-        log(f"learned submissions run in worker processes ({'confined by bubblewrap' if sandbox == 'bubblewrap' else 'not confined: no usable bwrap'}"
-            f"; {limits.memory_gb:g} GB, {limits.cpu_s} s CPU, {limits.step_s:g} s per step)")
+    learned_tracks = list(dict.fromkeys(name for _, sub, name, _, _ in todo if sub.kind == "learned"))
+    if learned_tracks:
+        limits = with_budgets(limits, learned_tracks, scenes, episodes, log)
     outcomes = _evaluate_all(todo, scenes, episodes, jobs, launcher, address, limits)
     while True:
         try:

@@ -29,6 +29,7 @@ import torch
 from crowdbench import policies
 from crowdbench.envs.protocol import EVAL_SCENES
 from crowdbench.fixed_lists import check_crowdnav
+from crowdbench.leaderboard.budget import budget_of
 from crowdbench.leaderboard.cache import HARNESS_VERSION
 from crowdbench.leaderboard.encoders import register_encoder
 from crowdbench.leaderboard.sandbox import DEFAULT_LIMITS, Limits
@@ -186,6 +187,10 @@ def _job(sub: Submission, tracks: list[tuple[str, str]], scenes: list[str], epis
                 if sub.kind == "learned":
                     worker = worker or build_policy(sub, t_, limits)
                     worker.steps = 0
+                    budget = budget_of(limits, track)
+                    if budget is not None:
+                        worker.start_budget(budget, f"{limits.budget_factor:g} x ORCA's time on track {track}, "
+                                                    "--budget-factor")
                 policy = worker or build_policy(sub, t_, limits)
                 out.append((evaluate_submission(sub, policy, scenes, episodes, fp, t_), time.time() - t))
                 continue

@@ -39,7 +39,8 @@ class Limits:
     """Bounds on one worker. ``step_s``: one reply (an action batch); ``load_s``: starting, importing
     the submission's code and loading its checkpoint; ``memory_gb``: address space (torch alone maps
     ~3 GB); ``cpu_s``: CPU time of the whole job; ``file_mb``: the largest file it may write;
-    ``scratch_mb``: its scratch tmpfs and its ``/dev/shm`` (each; confined workers only)."""
+    ``scratch_mb``: its scratch tmpfs and its ``/dev/shm`` (each; confined workers only); ``budget_*``: its
+    wall-clock time per track (crowdbench/leaderboard/budget.py)."""
 
     step_s: float = 60.0
     load_s: float = 300.0
@@ -48,6 +49,9 @@ class Limits:
     file_mb: int = 64
     scratch_mb: int = 256
     sandbox: str = "auto"
+    budget_factor: float = 20.0  # x the reference policy's wall time on the track (crowdbench/leaderboard/budget.py)
+    budget_floor_s: float = 60.0
+    budgets: tuple = ()  # ((track, seconds), ...), measured by the harness at the start of a run
 
 
 DEFAULT_LIMITS = Limits()
@@ -130,6 +134,15 @@ def sandbox_name(limits: Limits) -> str:
         raise SandboxError("--sandbox bubblewrap: bwrap is not installed or cannot create namespaces here "
                            "(Debian: apt install bubblewrap)")
     return "none"
+
+
+def confinement(sandbox: str, limits: Limits) -> str:
+    """The line every leaderboard run starts with: how submitted code runs."""
+    how = "CONFINED by bubblewrap" if sandbox == "bubblewrap" else \
+        "NOT confined (no usable bwrap: apt-get install bubblewrap; or --sandbox none)"
+    filt = "a seccomp filter" if seccomp.supported() else "no seccomp filter on this platform"
+    return (f"submitted code runs in worker processes, {how}, with {filt}; {limits.memory_gb:g} GB, "
+            f"{limits.cpu_s} s CPU, {limits.step_s:g} s per step, {limits.budget_factor:g} x ORCA's time per track")
 
 
 def command(limits: Limits, keep: list[str] = ()) -> list[str]:

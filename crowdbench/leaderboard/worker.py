@@ -79,6 +79,7 @@ class WorkerPolicy(Policy):
 
     def __init__(self, sub_dir: Path, name: str, limits: Limits = DEFAULT_LIMITS):
         self.name, self.limits, self.steps = name, limits, 0
+        self.budget: tuple[float, str] | None = None  # (time.monotonic() deadline, what it is), set per track
         # confined: the scratch is a tmpfs inside the worker's own mount namespace, never a host directory
         confined = sandbox_name(limits) == "bubblewrap"
         self._scratch = None if confined else tempfile.TemporaryDirectory(prefix="crowdbench-worker-")
@@ -105,12 +106,20 @@ class WorkerPolicy(Policy):
         self.close()
         return WorkerError(what, field)
 
+    def start_budget(self, seconds: float, what: str) -> None:
+        self.budget = (time.monotonic() + seconds, what)
+
     def _call(self, header: dict, arrays: dict, timeout: float, what: str) -> tuple[dict, dict]:
         deadline = time.monotonic() + timeout
+        budget = self.budget is not None and self.budget[0] < deadline
+        if budget:
+            deadline = self.budget[0]
         try:
             wire.send(self.proc.stdin.fileno(), header, arrays, deadline)
             reply, out = wire.recv(self.proc.stdout.fileno(), deadline, max_payload=self._max_reply(arrays))
         except TimeoutError:
+            if budget:
+                raise self._fail(f"the worker exceeded its wall-clock budget ({self.budget[1]})") from None
             raise self._fail(f"the worker did not answer within {timeout:g} s ({what})") from None
         except (wire.WireError, OSError) as e:
             raise self._died(what, e) from None
