@@ -248,9 +248,13 @@ def cmd_leaderboard(args: list[str]) -> int:
             tracks = check_tracks(t.strip() for t in a.tracks.split(",") if t.strip())
         except ValueError as e:
             ap.error(str(e))
-    return run(a.root or DEFAULT_ROOT, a.only, a.check, a.force, a.episodes, scenes, jobs=a.jobs,
-               launcher=a.launcher, address=a.address, readme=readme, docs=docs, tracks=tracks, limits=limits,
-               site=a.site, site_figures=a.site_figures)
+    try:
+        return run(a.root or DEFAULT_ROOT, a.only, a.check, a.force, a.episodes, scenes, jobs=a.jobs,
+                   launcher=a.launcher, address=a.address, readme=readme, docs=docs, tracks=tracks, limits=limits,
+                   site=a.site, site_figures=a.site_figures)
+    except KeyboardInterrupt:  # the jobs and their workers are stopped; results written so far are kept
+        print("crowdbench leaderboard: interrupted; results written so far are kept", file=sys.stderr)
+        return 130
 
 
 def training_overrides(cfg: dict) -> list[str]:

@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import signal
 import tempfile
 import time
 from pathlib import Path
@@ -242,13 +243,40 @@ def _local(todo: list, scenes, episodes, jobs: int, limits: Limits):
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as pool:
-        futures = [pool.submit(_job, sub, tracks, scenes, episodes, limits) for sub, tracks in groups]
-        for (sub, tracks), fut in zip(groups, futures, strict=True):
-            try:
-                yield from fut.result()
-            except Exception as e:  # noqa: BLE001 - a crashed job process
-                yield from [_failed(sub, e)] * len(tracks)
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"), initializer=_pool_init) as pool:
+        try:
+            futures = [pool.submit(_job, sub, tracks, scenes, episodes, limits) for sub, tracks in groups]
+            for (sub, tracks), fut in zip(groups, futures, strict=True):
+                try:
+                    yield from fut.result()
+                except Exception as e:  # noqa: BLE001 - a crashed job process
+                    yield from [_failed(sub, e)] * len(tracks)
+        except BaseException:  # Ctrl-C, SIGTERM (crowdbench/leaderboard/board.py), the generator closed early
+            _stop(pool)
+            raise
+
+
+def _pool_init() -> None:
+    # SIGTERM unwinds a job like Ctrl-C: its finally kills its worker's process group
+    signal.signal(signal.SIGTERM, _raise_exit)
+
+
+def _raise_exit(signum, frame):
+    raise SystemExit(128 + signum)
+
+
+def _stop(pool) -> None:
+    """Terminate the pool's processes now (``shutdown`` alone waits for the running jobs to finish)."""
+    procs = list(getattr(pool, "_processes", {}).values())  # (no public API lists them)
+    pool.shutdown(wait=False, cancel_futures=True)
+    for proc in procs:
+        if proc.is_alive():
+            proc.terminate()
+    for proc in procs:
+        proc.join(timeout=10)
+        if proc.is_alive():
+            proc.kill()
+            proc.join(timeout=5)
 
 
 def _ray(todo: list, scenes, episodes, jobs: int, address: str | None, limits: Limits):
