@@ -192,6 +192,8 @@ def cmd_leaderboard(args: list[str]) -> int:
                     "processes with bubblewrap (auto: where bwrap works; none: resource limits only)")
     ap.add_argument("--worker-timeout", type=float, default=Limits.step_s, metavar="SECONDS",
                     help=f"a worker's longest answer to one observation batch (default {Limits.step_s:g})")
+    ap.add_argument("--worker-load-timeout", type=float, default=Limits.load_s, metavar="SECONDS",
+                    help=f"a worker's longest start (importing the code, loading the checkpoint; default {Limits.load_s:g})")
     ap.add_argument("--budget-factor", type=float, default=Limits.budget_factor, metavar="X",
                     help="a learned submission's wall-clock budget per track: X times ORCA's time on the same "
                          f"track (default {Limits.budget_factor:g}; at least {Limits.budget_floor_s:g} s)")
@@ -228,10 +230,12 @@ def cmd_leaderboard(args: list[str]) -> int:
         ap.error("--worker-timeout must be in (0, 86400) seconds")
     if not (1 <= a.worker_memory <= 1024):
         ap.error("--worker-memory must be in [1, 1024] GB")
+    if not (0 < a.worker_load_timeout < 86400):
+        ap.error("--worker-load-timeout must be in (0, 86400) seconds")
     if not (1 <= a.budget_factor <= 10000):  # (also refuses nan)
         ap.error("--budget-factor must be in [1, 10000]")
-    limits = Limits(step_s=a.worker_timeout, memory_gb=a.worker_memory, sandbox=a.sandbox,
-                    budget_factor=a.budget_factor)
+    limits = Limits(step_s=a.worker_timeout, load_s=a.worker_load_timeout, memory_gb=a.worker_memory,
+                    sandbox=a.sandbox, budget_factor=a.budget_factor)
     if a.address and a.launcher != "ray":
         ap.error("--address needs --launcher ray")
     readme = a.readme

@@ -182,8 +182,9 @@ def _job(sub: Submission, tracks: list[tuple[str, str]], scenes: list[str], epis
     torch.set_num_threads(1)
     out, worker = [], None
     try:
-        for track, fp in tracks:
+        for i, (track, fp) in enumerate(tracks):
             t, t_ = time.time(), TRACKS[track]
+            loading = sub.kind == "learned" and worker is None
             try:
                 if sub.kind == "learned":
                     worker = worker or build_policy(sub, t_, limits)
@@ -201,6 +202,9 @@ def _job(sub: Submission, tracks: list[tuple[str, str]], scenes: list[str], epis
                 out.append(SubmissionError(sub.yaml_path, e.field, str(e)))
             except Exception as e:  # noqa: BLE001 - e.g. a model that fails on a real observation mid-episode
                 out.append(_failed(sub, e))
+            if loading and worker is None:  # it failed to load: it would on the next track too (M7: 300 s each)
+                out += [out[-1]] * (len(tracks) - i - 1)
+                break
             if worker is not None:
                 worker.close()
                 worker = None

@@ -30,6 +30,7 @@ MAX_LEN = 200  # characters of a one-line string field
 MAX_LEN_FIELD = {"notes": 2000}
 MULTILINE = ("notes",)  # the only string field that may hold newlines (it is never shown in a table)
 MAX_BYTES = 64 * 1024  # of submission.yaml
+MAX_FILE_BYTES = 256 * 1024 ** 2  # of a checkpoint or an encoder module (the published ones: < 1 MB)
 MAX_DEPTH = 8  # nesting of YAML collections
 MAX_ITEMS = {"authors": 20, "overrides": 200}
 MAX_MESSAGE = 320  # characters of a SubmissionError's problem
@@ -328,7 +329,17 @@ def read_submission(sub_dir: Path) -> Submission:
         if not sub.checkpoint.is_file():
             raise SubmissionError(path, "checkpoint", f"checkpoint file not found: {sub.checkpoint}")
         sub.extra_files = encoder_files(sub)
+        for f, fld in [(sub.checkpoint, "checkpoint"), *((f, "encoder_import") for f in sub.extra_files)]:
+            size = f.stat().st_size  # (before the fingerprint or a worker reads it)
+            if size > MAX_FILE_BYTES:
+                raise SubmissionError(path, fld, f"{f.name} is {size / 1024 ** 2:.0f} MB, more than "
+                                                 f"{MAX_FILE_BYTES >> 20} MB")
     else:
+        from crowdbench.leaderboard.overrides import override_problem
+
+        bad = override_problem("oracle" if sub.kind == "oracle" else data["policy"], data.get("overrides") or {})
+        if bad:
+            raise SubmissionError(path, f"overrides.{bad[0]}", bad[1])
         policy_params(path, data)
     return sub
 

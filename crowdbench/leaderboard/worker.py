@@ -91,9 +91,14 @@ class WorkerPolicy(Policy):
         self._tail = _Tail(self.proc.stderr)
         load = {"op": "load", "dir": str(Path(sub_dir).resolve()), "memory_gb": limits.memory_gb,
                 "cpu_s": limits.cpu_s, "file_mb": limits.file_mb}
-        header, _ = self._call(load, {}, limits.load_s, "loading")
-        if header.get("frame") not in FRAMES:
-            raise self._fail(f"the policy's frame {str(header.get('frame'))[:40]!r} is not one of {', '.join(FRAMES)}")
+        try:
+            header, _ = self._call(load, {}, limits.load_s, "loading")
+            if header.get("frame") not in FRAMES:
+                raise self._fail(f"the policy's frame {str(header.get('frame'))[:40]!r} is not one of "
+                                 f"{', '.join(FRAMES)}")
+        except BaseException:  # any failure (a RecursionError on a reply, Ctrl-C): no worker left running
+            self.close()
+            raise
         self.frame = header["frame"]
 
     def __enter__(self):
