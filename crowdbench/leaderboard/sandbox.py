@@ -150,7 +150,9 @@ def command(limits: Limits, keep: list[str] = ()) -> list[str]:
     with ``keep`` (:func:`needed_paths`) visible read-only."""
     # -s: no user site-packages; -P: the working directory is not on sys.path (a file planted in the
     # scratch dir cannot shadow a module); PYTHONPATH (env below) points at this crowdbench only
-    py = [sys.executable, "-s", "-P", "-m", "crowdbench.leaderboard.worker"]
+    # -W: runpy's warning that the worker module was imported before it ran (by its package) is on every
+    # worker's stderr, so it was quoted as the "last words" of any worker that died silently
+    py = [sys.executable, "-s", "-P", "-W", "ignore::RuntimeWarning:runpy", "-m", "crowdbench.leaderboard.worker"]
     if sandbox_name(limits) == "bubblewrap":
         return [bubblewrap(), *_bwrap_args(limits, list(keep)), "--", *py]
     return py
