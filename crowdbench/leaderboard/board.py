@@ -152,7 +152,7 @@ def _run(root: Path, only: list[str] | None = None, check: bool = False, force: 
 
     def reject(e: SubmissionError, track: str | None) -> None:
         log(f"crowdbench leaderboard: error: {e}" + (f" (track {track})" if track else ""))
-        rejected.append((track, str(e).replace(str(root.resolve()) + "/", "").replace(str(root) + "/", "")))
+        rejected.append((track, e.public.replace(str(root.resolve()) + "/", "").replace(str(root) + "/", "")))
 
     subs = []
     for d in dirs:

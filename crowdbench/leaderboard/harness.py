@@ -120,7 +120,7 @@ def build_policy(sub: Submission, track: Track = TRACKS["v1"], limits: Limits = 
         try:
             return WorkerPolicy(sub.dir, sub.name, limits)
         except WorkerError as e:
-            raise SubmissionError(sub.yaml_path, e.field, str(e)) from None
+            raise SubmissionError(sub.yaml_path, e.field, str(e), e.public) from None
     try:
         policy = policies.build(*baseline_args(sub.data, track_config(track)))
     except policies.PolicyError as e:
@@ -199,7 +199,7 @@ def _job(sub: Submission, tracks: list[tuple[str, str]], scenes: list[str], epis
             except SubmissionError as e:
                 out.append(e)
             except WorkerError as e:
-                out.append(SubmissionError(sub.yaml_path, e.field, str(e)))
+                out.append(SubmissionError(sub.yaml_path, e.field, str(e), e.public))
             except Exception as e:  # noqa: BLE001 - e.g. a model that fails on a real observation mid-episode
                 out.append(_failed(sub, e))
             if loading and worker is None:  # it failed to load: it would on the next track too (M7: 300 s each)

@@ -47,15 +47,21 @@ SEED_RANGE = (0, 2 ** 63)
 class SubmissionError(Exception):
     """A rejected submission: ``path: field 'x': problem`` on one line of bounded length."""
 
-    def __init__(self, path: Path | str, fld: str | None, message: str):
+    def __init__(self, path: Path | str, fld: str | None, message: str, public: str | None = None):
         self.path, self.field, self.message = str(path), fld, one_line(message)
         if len(self.message) > MAX_MESSAGE:
             self.message = self.message[:MAX_MESSAGE] + "..."
-        where = f"field '{one_line(fld)[:60]}': " if fld else ""
-        super().__init__(f"{one_line(self.path)}: {where}{self.message}")
+        self.where = f"{one_line(self.path)}: " + (f"field '{one_line(fld)[:60]}': " if fld else "")
+        self.public_message = None if public is None else one_line(public)[:MAX_MESSAGE]
+        super().__init__(f"{self.where}{self.message}")
 
-    def __reduce__(self):  # the custom __init__ needs its three parts to survive pickling (worker processes)
-        return SubmissionError, (self.path, self.field, self.message)
+    @property
+    def public(self) -> str:
+        """What the README shows: without text a worker wrote (the log has the whole message)."""
+        return str(self) if self.public_message is None else f"{self.where}{self.public_message}"
+
+    def __reduce__(self):  # the custom __init__ needs its parts to survive pickling (worker processes)
+        return SubmissionError, (self.path, self.field, self.message, self.public_message)
 
 
 @dataclass

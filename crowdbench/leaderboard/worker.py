@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import collections
 import os
+import re
 import signal
 import subprocess
 import tempfile
@@ -47,8 +48,10 @@ MAX_LINE = 240
 class WorkerError(RuntimeError):
     """The worker failed its submission: one line, for the leaderboard's rejection list."""
 
-    def __init__(self, message: str, field: str | None = None):
+    def __init__(self, message: str, field: str | None = None, public: str | None = None):
         self.field = field
+        # what may be published (the README): no text the worker wrote, which could quote any file it reads
+        self.public = _line(public if public is not None else message)
         super().__init__(_line(message))
 
 
@@ -95,7 +98,7 @@ class WorkerPolicy(Policy):
             header, _ = self._call(load, {}, limits.load_s, "loading")
             if header.get("frame") not in FRAMES:
                 raise self._fail(f"the policy's frame {str(header.get('frame'))[:40]!r} is not one of "
-                                 f"{', '.join(FRAMES)}")
+                                 f"{', '.join(FRAMES)}", public=f"the policy's frame is not one of {', '.join(FRAMES)}")
         except BaseException:  # any failure (a RecursionError on a reply, Ctrl-C): no worker left running
             self.close()
             raise
@@ -107,9 +110,9 @@ class WorkerPolicy(Policy):
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def _fail(self, what: str, field: str | None = None) -> WorkerError:
+    def _fail(self, what: str, field: str | None = None, public: str | None = None) -> WorkerError:
         self.close()
-        return WorkerError(what, field)
+        return WorkerError(what, field, public)
 
     def start_budget(self, seconds: float, what: str) -> None:
         self.budget = (time.monotonic() + seconds, what)
@@ -131,7 +134,11 @@ class WorkerPolicy(Policy):
         if reply["op"] == "error":  # the worker's own report: a rejected field, or its exception
             field = reply.get("field")
             message = str(reply.get("message", ""))
-            raise self._fail(message if field else f"evaluation failed: {message} ({what})", field)
+            kind = message.partition(":")[0] if re.fullmatch(r"[A-Za-z_]\w{0,40}(Error|Exception|Exit)", message.partition(":")[0]) \
+                else "an error"
+            public = f"refused by its worker while {what}" if field else f"evaluation failed: {kind} ({what})"
+            raise self._fail(message if field else f"evaluation failed: {message} ({what})", field,
+                             public + " (details in the harness log)")
         return reply, out
 
     @staticmethod
@@ -153,7 +160,9 @@ class WorkerPolicy(Policy):
                   (" (its CPU-time limit)" if -code == signal.SIGXCPU else "")
         else:
             how = f"exited with code {code}"
-        return self._fail(f"the worker {how} while {what}" + (f"; its last words: {last}" if last else ""))
+        return self._fail(f"the worker {how} while {what}" + (f"; its last words: {last}" if last else ""),
+                          public=f"the worker {how} while {what}" + ("; its last words are in the harness log"
+                                                                     if last else ""))
 
     def reset(self, mask: torch.Tensor) -> None:
         self._call({"op": "reset"}, {"mask": mask.numpy()}, self.limits.step_s, f"resetting at step {self.steps}")
