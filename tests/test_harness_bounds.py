@@ -96,3 +96,11 @@ def test_baseline_and_oracle_overrides_are_bounded(tmp_path, yaml, key):
 def test_the_published_baselines_fit_the_bounds():
     for name in ("orca", "straight", "oracle"):
         read_submission(REPO / "leaderboard" / "submissions" / name)
+
+
+def test_the_subset_note_states_the_episodes_evaluated():
+    """L5: `--episodes 1000000000` was announced as such; an episode list holds 250."""
+    from crowdbench.leaderboard.render import _subset_note
+
+    assert "250 episodes per scene" in _subset_note(["hotel"], 10 ** 9)[0]
+    assert "5 episodes per scene" in _subset_note(["hotel"], 5)[0]

@@ -285,7 +285,8 @@ def splice(text: str, block: str, name: str = "results") -> str:
 def _subset_note(scenes: list[str], episodes: int | None) -> list[str]:
     if episodes is None and set(scenes) == set(EVAL_SCENES):
         return []
-    return [f"**UNOFFICIAL subset**: {episodes or 250} episodes per scene, scenes {', '.join(scenes)}.", ""]
+    # (an episode list holds 250 episodes: a larger --episodes evaluates them all, L5)
+    return [f"**UNOFFICIAL subset**: {min(episodes or 250, 250)} episodes per scene, scenes {', '.join(scenes)}.", ""]
 
 
 BASELINE_METRICS = [
