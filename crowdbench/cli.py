@@ -332,8 +332,6 @@ def submit_run(run: Path, name: str | None, entry: str | None, authors: list[str
     ``submission.*`` config; ``overrides``: the command-line overrides of a sweep's run (else derived)."""
     from crowdbench.outputs import OutputError, claim_dir
 
-    if not Path(run).is_dir():
-        raise UsageError(f"submit: {run} is not a run directory")
     try:  # a run still training (it holds the lock) is refused, as `eval` and `run` refuse it
         with claim_dir(Path(run), "run"):
             return _submit_claimed(run, name, entry, authors, link, notes, root, overrides)
