@@ -216,6 +216,11 @@ def cmd_leaderboard(args: list[str]) -> int:
                     "processes with bubblewrap (auto: where bwrap works; none: resource limits only)")
     ap.add_argument("--worker-timeout", type=float, default=Limits.step_s, metavar="SECONDS",
                     help=f"a worker's longest answer to one observation batch (default {Limits.step_s:g})")
+    ap.add_argument("--worker-load-timeout", type=float, default=Limits.load_s, metavar="SECONDS",
+                    help=f"a worker's longest start (importing the code, loading the checkpoint; default {Limits.load_s:g})")
+    ap.add_argument("--budget-factor", type=float, default=Limits.budget_factor, metavar="X",
+                    help="a learned submission's wall-clock budget per track: X times ORCA's time on the same "
+                         f"track (default {Limits.budget_factor:g}; at least {Limits.budget_floor_s:g} s)")
     ap.add_argument("--worker-memory", type=float, default=Limits.memory_gb, metavar="GB",
                     help=f"a worker's address-space limit (default {Limits.memory_gb:g})")
     ap.add_argument("--readme", type=Path, default=None, help="also regenerate the results block of this file "
@@ -249,7 +254,12 @@ def cmd_leaderboard(args: list[str]) -> int:
         ap.error("--worker-timeout must be in (0, 86400) seconds")
     if not (1 <= a.worker_memory <= 1024):
         ap.error("--worker-memory must be in [1, 1024] GB")
-    limits = Limits(step_s=a.worker_timeout, memory_gb=a.worker_memory, sandbox=a.sandbox)
+    if not (0 < a.worker_load_timeout < 86400):
+        ap.error("--worker-load-timeout must be in (0, 86400) seconds")
+    if not (1 <= a.budget_factor <= 10000):  # (also refuses nan)
+        ap.error("--budget-factor must be in [1, 10000]")
+    limits = Limits(step_s=a.worker_timeout, load_s=a.worker_load_timeout, memory_gb=a.worker_memory,
+                    sandbox=a.sandbox, budget_factor=a.budget_factor)
     if a.address and a.launcher != "ray":
         ap.error("--address needs --launcher ray")
     readme = a.readme
@@ -267,9 +277,13 @@ def cmd_leaderboard(args: list[str]) -> int:
         except ValueError as e:
             ap.error(str(e))
     only = [n.strip() for o in a.only for n in o.split(",") if n.strip()] if a.only else None  # names have no commas
-    return run(a.root or DEFAULT_ROOT, only, a.check, a.force, a.episodes, scenes, jobs=a.jobs,
-               launcher=a.launcher, address=a.address, readme=readme, docs=docs, tracks=tracks, limits=limits,
-               site=a.site, site_figures=a.site_figures, progress=True)
+    try:
+        return run(a.root or DEFAULT_ROOT, only, a.check, a.force, a.episodes, scenes, jobs=a.jobs,
+                   launcher=a.launcher, address=a.address, readme=readme, docs=docs, tracks=tracks, limits=limits,
+                   site=a.site, site_figures=a.site_figures, progress=True)
+    except KeyboardInterrupt:  # the jobs and their workers are stopped; results written so far are kept
+        print("crowdbench leaderboard: interrupted; results written so far are kept", file=sys.stderr)
+        return 130
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -181,6 +181,16 @@ def submit_run(run: Path, name: str | None, entry: str | None, authors: list[str
                notes: str | None, root: Path, overrides: list[str] | None) -> Path:
     """One run -> ``root/submissions/<name>``; name, row label and experiment default to the run's
     ``submission.*`` config; ``overrides``: the command-line overrides of a sweep's run (else derived)."""
+    from crowdbench.outputs import OutputError, claim_dir
+
+    try:  # a run still training (it holds the lock) is refused, as `eval` and `run` refuse it
+        with claim_dir(Path(run), "run"):
+            return _submit_claimed(run, name, entry, authors, link, notes, root, overrides)
+    except OutputError as e:
+        raise UsageError(f"submit: {e}") from None
+
+
+def _submit_claimed(run: Path, name, entry, authors, link, notes, root, overrides) -> Path:
     from crowdbench.algos.checkpoint import CheckpointError, load_checkpoint
     from crowdbench.leaderboard import SubmissionError, make_submission
 

@@ -87,7 +87,8 @@ Enc.forward = _nan
 from pathlib import Path
 import crowdbench
 root = Path(crowdbench.__file__).parent
-for target in (Path(__file__).parents[2] / "results" / "straight" / "results.json", root / "eval.py"):
+# (crowdbench's own files are bound read-only; the leaderboard under /tmp is not even visible)
+for target in (root / "eval.py", Path(__file__).parents[2] / "results" / "straight" / "results.json"):
     target.write_text("{}")
 ''', "Read-only file system"),
     "printer": ('''

@@ -64,7 +64,8 @@ def test_valid_and_malformed_submissions(tmp_path):
     add_straight(root)
     add_toy(root)
     write_yaml(root, "bad_yaml", "name: bad_yaml\nkind: [learned\n")
-    write_yaml(root, "bad_encoder", learned_yaml("bad_encoder", encoder="nosuchencoder"))
+    # (its own row: a label is shared only by one encoder, algo and recipe, crowdbench/leaderboard/entries.py)
+    write_yaml(root, "bad_encoder", learned_yaml("bad_encoder", encoder="nosuchencoder").replace("Toy MLP", "Bad"))
     toy_checkpoint(root / "submissions" / "bad_encoder" / "checkpoint.pt", MLP)
     d = write_yaml(root, "bad_shapes", learned_yaml("bad_shapes"))
     toy_checkpoint(d / "checkpoint.pt", MLP, actor_encoder={**MLP, "dim": 12})  # weights don't fit the config
@@ -746,5 +747,7 @@ def test_a_corrupted_scene_file_is_one_line_and_writes_nothing(tmp_path, monkeyp
         corrupt(data / "hotel.txt")
         log = []
         assert run(root, log=log.append, **FAST) == 1
-        assert len(log) == 1 and log[0].startswith(f"crowdbench leaderboard: error: {data / 'hotel.txt'}: "), log
+        # (every run first says whether submitted code runs confined)
+        assert len(log) == 2 and log[0].startswith("submitted code runs in worker processes"), log
+        assert log[1].startswith(f"crowdbench leaderboard: error: {data / 'hotel.txt'}: "), log
         assert sorted(p.name for p in root.iterdir()) == ["submissions"]  # nothing written

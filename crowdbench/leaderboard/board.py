@@ -9,8 +9,12 @@ docs) and ``leaderboard/TRACKS.md`` (every track, and the transfer table).
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -19,10 +23,13 @@ from tqdm import tqdm
 from crowdbench.envs.protocol import EVAL_SCENES, PROTOCOL_VERSION
 from crowdbench.fixed_lists import ListError, check_replay
 from crowdbench.leaderboard import render
+from crowdbench.leaderboard.budget import with_budgets
 from crowdbench.leaderboard.cache import fingerprint
+from crowdbench.leaderboard.entries import entry_problems
 from crowdbench.leaderboard.harness import LauncherError, _evaluate_all
-from crowdbench.leaderboard.sandbox import DEFAULT_LIMITS, Limits, SandboxError, sandbox_name
+from crowdbench.leaderboard.sandbox import DEFAULT_LIMITS, Limits, SandboxError, confinement, sandbox_name
 from crowdbench.leaderboard.schema import DEFAULT_ROOT, SubmissionError, read_submission
+from crowdbench.leaderboard.store import RootBusy, locked, read_cached, write_atomic, write_results
 from crowdbench.leaderboard.track_tables import render_tracks, trained_on
 from crowdbench.leaderboard.tracks import TRACK_ORDER, TRACKS, check_tracks
 
@@ -73,11 +80,43 @@ def _print(msg: str) -> None:
     sys.stdout.flush()
 
 
+def _terminate(signum, frame):
+    raise SystemExit(128 + signum)  # unwinds: every job's finally kills its worker, the pool is terminated
+
+
 def run(root: Path = DEFAULT_ROOT, only: list[str] | None = None, check: bool = False, force: bool = False,
-        episodes: int | None = None, scenes: list[str] | None = None, log=None, jobs: int = 1,
-        launcher: str = "local", address: str | None = None, readme: Path | None = None,
-        docs: list[Path] | None = None, tracks: list[str] | None = None, limits: Limits = DEFAULT_LIMITS,
-        site: Path | None = None, site_figures: int = 2, progress: bool = False) -> int:
+        episodes: int | None = None, scenes: list[str] | None = None, log=None, **kw) -> int:
+    """:func:`_run` holding the root's lock (not with ``check``, which writes nothing), with SIGTERM
+    unwinding like Ctrl-C, and a file that cannot be written as one line (the previous one is kept)."""
+    root = Path(root)
+    log = log or _print
+    stack = contextlib.ExitStack()
+    try:
+        with stack:
+            if threading.current_thread() is threading.main_thread():
+                old = signal.signal(signal.SIGTERM, _terminate)
+                stack.callback(signal.signal, signal.SIGTERM, old)
+            if root.is_dir() and not check:
+                if not os.access(root, os.W_OK):
+                    log(f"crowdbench leaderboard: error: {root} is not writable (--check needs no write access)")
+                    return 1
+                stack.enter_context(locked(root))
+            return _run(root, only=only, check=check, force=force, episodes=episodes, scenes=scenes, log=log, **kw)
+    except RootBusy as e:
+        log(f"crowdbench leaderboard: error: {e}")
+        return 1
+    except OSError as e:
+        if e.filename is None:
+            raise
+        log(f"crowdbench leaderboard: error: cannot write {e.filename}: {e.strerror}; the previous file is kept")
+        return 1
+
+
+def _run(root: Path, only: list[str] | None = None, check: bool = False, force: bool = False,
+         episodes: int | None = None, scenes: list[str] | None = None, log=None, jobs: int = 1,
+         launcher: str = "local", address: str | None = None, readme: Path | None = None,
+         docs: list[Path] | None = None, tracks: list[str] | None = None, limits: Limits = DEFAULT_LIMITS,
+         site: Path | None = None, site_figures: int = 2, progress: bool = False) -> int:
     """Validate, evaluate and render; returns the exit code (0 ok, 1 a submission failed or --check differs).
 
     ``tracks``: the tracks evaluated (default all; the others keep their cached results, and ``--check``
@@ -88,8 +127,6 @@ def run(root: Path = DEFAULT_ROOT, only: list[str] | None = None, check: bool = 
     ``site``: also write the web site into this directory from the same results (not with ``check``;
     crowdbench/leaderboard/site.py), with ``site_figures`` episodes per entry for its figures.
     ``progress``: a progress bar on stderr over the (submission, track) evaluations."""
-    root = Path(root)
-    log = log or _print
     scenes = list(scenes or EVAL_SCENES)
     try:
         tracks = check_tracks(tracks)
@@ -97,6 +134,7 @@ def run(root: Path = DEFAULT_ROOT, only: list[str] | None = None, check: bool = 
     except (ValueError, SandboxError) as e:
         log(f"crowdbench leaderboard: error: {e}")
         return 1
+    log(confinement(sandbox, limits))
     sub_root = root / "submissions"
     dirs = sorted(p for p in sub_root.iterdir() if p.is_dir()) if sub_root.is_dir() else []
     if not dirs:
@@ -118,17 +156,23 @@ def run(root: Path = DEFAULT_ROOT, only: list[str] | None = None, check: bool = 
     rejected: list[tuple[str | None, str]] = []  # (track or None for every track, message)
     missing: list[tuple[str, str]] = []
     todo = []
+    unverified = 0
     t_all = time.time()
 
     def reject(e: SubmissionError, track: str | None) -> None:
         log(f"crowdbench leaderboard: error: {e}" + (f" (track {track})" if track else ""))
-        rejected.append((track, str(e).replace(str(root.resolve()) + "/", "").replace(str(root) + "/", "")))
+        rejected.append((track, e.public.replace(str(root.resolve()) + "/", "").replace(str(root) + "/", "")))
 
+    subs = []
     for d in dirs:
         try:  # (a learned entry's code is imported only by its worker: crowdbench/leaderboard/worker.py)
-            sub = read_submission(d)
+            subs.append((d, read_submission(d)))
         except SubmissionError as e:
             reject(e, None)
+    conflicts = entry_problems([sub for _, sub in subs])
+    for d, sub in subs:
+        if sub.name in conflicts:
+            reject(conflicts[sub.name], None)
             continue
         for name in TRACK_ORDER:
             track = TRACKS[name]
@@ -141,21 +185,24 @@ def run(root: Path = DEFAULT_ROOT, only: list[str] | None = None, check: bool = 
             except SubmissionError as e:
                 reject(e, None)
                 break
-            cached = json.loads(res_path.read_text()) if res_path.is_file() else None
-            fresh = cached is not None and cached.get("harness", {}).get("fingerprint") == fp
-            if not check and (fresh and not force or not selected):
-                if fresh:
+            cached, why = (None, None) if check else read_cached(res_path, d.name, sub.kind, sub.data, fp)
+            trusted = cached is not None and why is None
+            if not check and (trusted and not force or not selected):
+                if cached is not None:  # (unselected and not in the ledger: shown as committed, counted below)
                     results[name].append(cached)
                     if selected:
                         log(f"{_tag(d.name, name)}: unchanged, cached results; --force re-evaluates")
+                    unverified += not trusted
                 else:
                     missing.append((name, (f"{d.name} ({name}): results missing or out of date "
                                           f"(`crowdbench leaderboard --only {d.name} --tracks {name}`)")))
                 continue
+            if why and selected and not force:
+                log(f"{_tag(d.name, name)}: cached results {why}: re-evaluated")
             todo.append((d, sub, name, fp, res_path))
-    if any(sub.kind == "learned" for _, sub, _, _, _ in todo):
-        log(f"learned submissions run in worker processes ({'confined by bubblewrap' if sandbox == 'bubblewrap' else 'not confined: no usable bwrap'}"
-            f"; {limits.memory_gb:g} GB, {limits.cpu_s} s CPU, {limits.step_s:g} s per step)")
+    learned_tracks = list(dict.fromkeys(name for _, sub, name, _, _ in todo if sub.kind == "learned"))
+    if learned_tracks:
+        limits = with_budgets(limits, learned_tracks, scenes, episodes, log)
     outcomes = _evaluate_all(todo, scenes, episodes, jobs, launcher, address, limits)
     bar = tqdm(total=len(todo), disable=not progress or not todo, unit="evaluation", desc="leaderboard",
                dynamic_ncols=True, file=sys.stderr)
@@ -181,10 +228,9 @@ def run(root: Path = DEFAULT_ROOT, only: list[str] | None = None, check: bool = 
         log(f"{_tag(d.name, name)}: evaluated in {seconds:.1f} s; {head} {render.fmt(value, 3)}")
         results[name].append(res)
         if not check:
-            res_path.parent.mkdir(parents=True, exist_ok=True)
-            res_path.write_text(json.dumps(res, indent=1) + "\n")
+            write_results(res_path, res)
             if sub.kind == "oracle" and name == "v1":
-                (res_path.parent / "unavoidable.json").write_text(json.dumps(
+                write_atomic(res_path.parent / "unavoidable.json", json.dumps(
                     {"privileged": True, "note": "episodes the privileged oracle fails: candidate unavoidable",
                      "protocol": PROTOCOL_VERSION, "scenes": res["unavoidable"]}, indent=1) + "\n")
     bar.close()
@@ -196,23 +242,26 @@ def run(root: Path = DEFAULT_ROOT, only: list[str] | None = None, check: bool = 
     shown = {t: results[t] for t in TRACK_ORDER if t in tracks or results[t]}
     all_rejected = sorted(f"{m} (track {t})" if t else m for t, m in rejected)
     board = render_tracks(shown, scenes, episodes, [m for _, m in missing], all_rejected)
+    if unverified:
+        log(f"note: {unverified} cached result(s) not selected and not written by this harness are shown as "
+            "they are on disk; a run without --only re-evaluates them (docs/submitting.md, Cache)")
     log(f"leaderboard: {sum(map(len, results.values()))} results evaluated/cached on {len(tracks)} track(s), "
         f"{len(rejected)} rejected, {time.time() - t_all:.1f} s")
     if check:
         return _check(root, tracks, table, board, targets, v1, scenes, episodes, log) or (1 if failed else 0)
     wrote = []
     if "v1" in tracks:
-        (root / "README.md").write_text(table)
+        write_atomic(root / "README.md", table)
         if v1:
             render.plot(v1, scenes, root / "leaderboard.png")
         wrote += [str(root / "README.md"), str(root / "leaderboard.png")]
         for path, text in targets:
             new = render.regenerate(text, v1, scenes, episodes)
             if new != text:
-                path.write_text(new)
+                write_atomic(path, new)
             wrote.append(f"the results block of {path}" if render.blocks_in(text) == ["results"] else
                          f"the generated blocks of {path}")
-    (root / TRACKS_FILE).write_text(board)
+    write_atomic(root / TRACKS_FILE, board)
     wrote.append(str(root / TRACKS_FILE))
     if site is not None:  # from the results just written: the tables' numbers
         from crowdbench.leaderboard.site import write_site

@@ -29,7 +29,9 @@ EVAL_MODULES = ("crowdbench.eval", "crowdbench.eval_crowdnav", "crowdbench.polic
 
 def _sha(h, path: Path) -> None:
     h.update(str(path.name).encode())
-    h.update(path.read_bytes())
+    with path.open("rb") as f:  # in chunks: the same digest as the whole file at once, in bounded memory
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
 
 
 def _module_file(name: str) -> Path | None:

@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import signal
 import tempfile
 import time
 from pathlib import Path
@@ -29,6 +30,7 @@ import torch
 from crowdbench import policies
 from crowdbench.envs.protocol import EVAL_SCENES
 from crowdbench.fixed_lists import check_crowdnav
+from crowdbench.leaderboard.budget import budget_of
 from crowdbench.leaderboard.cache import HARNESS_VERSION
 from crowdbench.leaderboard.encoders import register_encoder
 from crowdbench.leaderboard.sandbox import DEFAULT_LIMITS, Limits
@@ -126,7 +128,7 @@ def build_policy(sub: Submission, track: Track = TRACKS["v1"], limits: Limits = 
         try:
             return WorkerPolicy(sub.dir, sub.name, limits)
         except WorkerError as e:
-            raise SubmissionError(sub.yaml_path, e.field, str(e)) from None
+            raise SubmissionError(sub.yaml_path, e.field, str(e), e.public) from None
     try:
         policy = policies.build(*baseline_args(sub.data, track_config(track)))
     except policies.PolicyError as e:
@@ -188,21 +190,29 @@ def _job(sub: Submission, tracks: list[tuple[str, str]], scenes: list[str], epis
     torch.set_num_threads(1)
     out, worker = [], None
     try:
-        for track, fp in tracks:
+        for i, (track, fp) in enumerate(tracks):
             t, t_ = time.time(), TRACKS[track]
+            loading = sub.kind == "learned" and worker is None
             try:
                 if sub.kind == "learned":
                     worker = worker or build_policy(sub, t_, limits)
                     worker.steps = 0
+                    budget = budget_of(limits, track)
+                    if budget is not None:
+                        worker.start_budget(budget, f"{limits.budget_factor:g} x ORCA's time on track {track}, "
+                                                    "--budget-factor")
                 policy = worker or build_policy(sub, t_, limits)
                 out.append((evaluate_submission(sub, policy, scenes, episodes, fp, t_), time.time() - t))
                 continue
             except SubmissionError as e:
                 out.append(e)
             except WorkerError as e:
-                out.append(SubmissionError(sub.yaml_path, e.field, str(e)))
+                out.append(SubmissionError(sub.yaml_path, e.field, str(e), e.public))
             except Exception as e:  # noqa: BLE001 - e.g. a model that fails on a real observation mid-episode
                 out.append(_failed(sub, e))
+            if loading and worker is None:  # it failed to load: it would on the next track too (M7: 300 s each)
+                out += [out[-1]] * (len(tracks) - i - 1)
+                break
             if worker is not None:
                 worker.close()
                 worker = None
@@ -245,13 +255,40 @@ def _local(todo: list, scenes, episodes, jobs: int, limits: Limits):
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as pool:
-        futures = [pool.submit(_job, sub, tracks, scenes, episodes, limits) for sub, tracks in groups]
-        for (sub, tracks), fut in zip(groups, futures, strict=True):
-            try:
-                yield from fut.result()
-            except Exception as e:  # noqa: BLE001 - a crashed job process
-                yield from [_failed(sub, e)] * len(tracks)
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"), initializer=_pool_init) as pool:
+        try:
+            futures = [pool.submit(_job, sub, tracks, scenes, episodes, limits) for sub, tracks in groups]
+            for (sub, tracks), fut in zip(groups, futures, strict=True):
+                try:
+                    yield from fut.result()
+                except Exception as e:  # noqa: BLE001 - a crashed job process
+                    yield from [_failed(sub, e)] * len(tracks)
+        except BaseException:  # Ctrl-C, SIGTERM (crowdbench/leaderboard/board.py), the generator closed early
+            _stop(pool)
+            raise
+
+
+def _pool_init() -> None:
+    # SIGTERM unwinds a job like Ctrl-C: its finally kills its worker's process group
+    signal.signal(signal.SIGTERM, _raise_exit)
+
+
+def _raise_exit(signum, frame):
+    raise SystemExit(128 + signum)
+
+
+def _stop(pool) -> None:
+    """Terminate the pool's processes now (``shutdown`` alone waits for the running jobs to finish)."""
+    procs = list(getattr(pool, "_processes", {}).values())  # (no public API lists them)
+    pool.shutdown(wait=False, cancel_futures=True)
+    for proc in procs:
+        if proc.is_alive():
+            proc.terminate()
+    for proc in procs:
+        proc.join(timeout=10)
+        if proc.is_alive():
+            proc.kill()
+            proc.join(timeout=5)
 
 
 def _ray(todo: list, scenes, episodes, jobs: int, address: str | None, limits: Limits):

@@ -73,9 +73,9 @@ def label(group: list[dict], escape: bool = True) -> str:
 
 def group_results(results: list[dict]) -> list[list[dict]]:
     """Results grouped by entry (seeds together), ordered baseline < learned < oracle, then by name."""
-    groups: dict[str, list[dict]] = {}
+    groups: dict[tuple[str, str], list[dict]] = {}
     for r in sorted(results, key=lambda r: r["meta"]["submission"]):
-        groups.setdefault(r["meta"]["entry"], []).append(r)
+        groups.setdefault((r["meta"]["kind"], r["meta"]["entry"]), []).append(r)  # a kind never joins another
     order = {k: i for i, k in enumerate(KINDS)}
     return sorted(groups.values(), key=lambda g: (order[g[0]["meta"]["kind"]], g[0]["meta"]["entry"].lower()))
 
@@ -285,7 +285,8 @@ def splice(text: str, block: str, name: str = "results") -> str:
 def _subset_note(scenes: list[str], episodes: int | None) -> list[str]:
     if episodes is None and set(scenes) == set(EVAL_SCENES):
         return []
-    return [f"**UNOFFICIAL subset**: {episodes or 250} episodes per scene, scenes {', '.join(scenes)}.", ""]
+    # (an episode list holds 250 episodes: a larger --episodes evaluates them all, L5)
+    return [f"**UNOFFICIAL subset**: {min(episodes or 250, 250)} episodes per scene, scenes {', '.join(scenes)}.", ""]
 
 
 BASELINE_METRICS = [

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import re
 import shutil
+import unicodedata
 from dataclasses import dataclass, field
 from pathlib import Path
 from urllib.parse import urlsplit
@@ -29,6 +30,7 @@ MAX_LEN = 200  # characters of a one-line string field
 MAX_LEN_FIELD = {"notes": 2000}
 MULTILINE = ("notes",)  # the only string field that may hold newlines (it is never shown in a table)
 MAX_BYTES = 64 * 1024  # of submission.yaml
+MAX_FILE_BYTES = 256 * 1024 ** 2  # of a checkpoint or an encoder module (the published ones: < 1 MB)
 MAX_DEPTH = 8  # nesting of YAML collections
 MAX_ITEMS = {"authors": 20, "overrides": 200}
 MAX_MESSAGE = 320  # characters of a SubmissionError's problem
@@ -45,15 +47,21 @@ SEED_RANGE = (0, 2 ** 63)
 class SubmissionError(Exception):
     """A rejected submission: ``path: field 'x': problem`` on one line of bounded length."""
 
-    def __init__(self, path: Path | str, fld: str | None, message: str):
+    def __init__(self, path: Path | str, fld: str | None, message: str, public: str | None = None):
         self.path, self.field, self.message = str(path), fld, one_line(message)
         if len(self.message) > MAX_MESSAGE:
             self.message = self.message[:MAX_MESSAGE] + "..."
-        where = f"field '{one_line(fld)[:60]}': " if fld else ""
-        super().__init__(f"{one_line(self.path)}: {where}{self.message}")
+        self.where = f"{one_line(self.path)}: " + (f"field '{one_line(fld)[:60]}': " if fld else "")
+        self.public_message = None if public is None else one_line(public)[:MAX_MESSAGE]
+        super().__init__(f"{self.where}{self.message}")
 
-    def __reduce__(self):  # the custom __init__ needs its three parts to survive pickling (worker processes)
-        return SubmissionError, (self.path, self.field, self.message)
+    @property
+    def public(self) -> str:
+        """What the README shows: without text a worker wrote (the log has the whole message)."""
+        return str(self) if self.public_message is None else f"{self.where}{self.public_message}"
+
+    def __reduce__(self):  # the custom __init__ needs its parts to survive pickling (worker processes)
+        return SubmissionError, (self.path, self.field, self.message, self.public_message)
 
 
 @dataclass
@@ -114,6 +122,8 @@ def _text_problem(key: str, v: str) -> str | None:
         return f"must be a non-empty string of at most {limit} characters, got {len(v)}"
     if any(bad_char(c) and not (key in MULTILINE and c in "\n\t") for c in v):
         return f"must be one line of printable text (no newline or control character), got {short(v)}"
+    if key == "entry" and any(unicodedata.category(c) == "Cf" for c in v):  # zero-width, soft hyphen, LRM...
+        return f"must hold no invisible or direction characters (Unicode Cf), got {ascii(v)[:80]}"
     return None
 
 
@@ -317,14 +327,25 @@ def read_submission(sub_dir: Path) -> Submission:
     if sub_dir.is_symlink():
         raise SubmissionError(path, None, "the submission directory is a symlink: it must be a directory")
     data = validate_schema(path, load_yaml(path))
+    # the row label as shown and compared: NFKC (a full-width or ligature form is its plain letters)
     sub = Submission(name=data["name"], dir=sub_dir, yaml_path=path, data=data, kind=data["kind"],
-                     entry=data.get("entry") or data["name"])
+                     entry=unicodedata.normalize("NFKC", data.get("entry") or data["name"]))
     if sub.kind == "learned":
         sub.checkpoint = inside(sub_dir, data.get("checkpoint", "checkpoint.pt"), path, "checkpoint")
         if not sub.checkpoint.is_file():
             raise SubmissionError(path, "checkpoint", f"checkpoint file not found: {sub.checkpoint}")
         sub.extra_files = encoder_files(sub)
+        for f, fld in [(sub.checkpoint, "checkpoint"), *((f, "encoder_import") for f in sub.extra_files)]:
+            size = f.stat().st_size  # (before the fingerprint or a worker reads it)
+            if size > MAX_FILE_BYTES:
+                raise SubmissionError(path, fld, f"{f.name} is {size / 1024 ** 2:.0f} MB, more than "
+                                                 f"{MAX_FILE_BYTES >> 20} MB")
     else:
+        from crowdbench.leaderboard.overrides import override_problem
+
+        bad = override_problem("oracle" if sub.kind == "oracle" else data["policy"], data.get("overrides") or {})
+        if bad:
+            raise SubmissionError(path, f"overrides.{bad[0]}", bad[1])
         policy_params(path, data)
     return sub
 

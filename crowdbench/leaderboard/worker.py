@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import collections
 import os
+import re
 import signal
 import subprocess
 import tempfile
@@ -30,7 +31,16 @@ import torch
 from crowdbench.envs.lookahead import PRIVILEGED_MODELS, check_lookahead
 from crowdbench.envs.policy import OBS, Policy, obs_tensordict
 from crowdbench.leaderboard import wire
-from crowdbench.leaderboard.sandbox import DEFAULT_LIMITS, Limits, apply_limits, command, environment
+from crowdbench.leaderboard.sandbox import (
+    DEFAULT_LIMITS,
+    SCRATCH,
+    Limits,
+    apply_limits,
+    command,
+    environment,
+    needed_paths,
+    sandbox_name,
+)
 
 FRAMES = ("rotate", "translate", "world")
 MAX_LINE = 240
@@ -39,8 +49,10 @@ MAX_LINE = 240
 class WorkerError(RuntimeError):
     """The worker failed its submission: one line, for the leaderboard's rejection list."""
 
-    def __init__(self, message: str, field: str | None = None):
+    def __init__(self, message: str, field: str | None = None, public: str | None = None):
         self.field = field
+        # what may be published (the README): no text the worker wrote, which could quote any file it reads
+        self.public = _line(public if public is not None else message)
         super().__init__(_line(message))
 
 
@@ -71,17 +83,26 @@ class WorkerPolicy(Policy):
 
     def __init__(self, sub_dir: Path, name: str, limits: Limits = DEFAULT_LIMITS):
         self.name, self.limits, self.steps = name, limits, 0
-        self._scratch = tempfile.TemporaryDirectory(prefix="crowdbench-worker-")
-        scratch = Path(self._scratch.name)
-        self.proc = subprocess.Popen(command(scratch, limits), stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                     stderr=subprocess.PIPE, env=environment(scratch), cwd=scratch,
-                                     start_new_session=True)
+        self.budget: tuple[float, str] | None = None  # (time.monotonic() deadline, what it is), set per track
+        # confined: the scratch is a tmpfs inside the worker's own mount namespace, never a host directory
+        confined = sandbox_name(limits) == "bubblewrap"
+        self._scratch = None if confined else tempfile.TemporaryDirectory(prefix="crowdbench-worker-")
+        scratch = Path(SCRATCH if confined else self._scratch.name)
+        env = environment(scratch)
+        self.proc = subprocess.Popen(command(limits, needed_paths(Path(sub_dir).resolve(), env)),
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env,
+                                     cwd="/" if confined else scratch, start_new_session=True)
         self._tail = _Tail(self.proc.stderr)
         load = {"op": "load", "dir": str(Path(sub_dir).resolve()), "memory_gb": limits.memory_gb,
                 "cpu_s": limits.cpu_s, "file_mb": limits.file_mb}
-        header, _ = self._call(load, {}, limits.load_s, "loading")
-        if header.get("frame") not in FRAMES:
-            raise self._fail(f"the policy's frame {str(header.get('frame'))[:40]!r} is not one of {', '.join(FRAMES)}")
+        try:
+            header, _ = self._call(load, {}, limits.load_s, "loading")
+            if header.get("frame") not in FRAMES:
+                raise self._fail(f"the policy's frame {str(header.get('frame'))[:40]!r} is not one of "
+                                 f"{', '.join(FRAMES)}", public=f"the policy's frame is not one of {', '.join(FRAMES)}")
+        except BaseException:  # any failure (a RecursionError on a reply, Ctrl-C): no worker left running
+            self.close()
+            raise
         self.frame = header["frame"]
         if "lookahead" in header:  # the candidates the evaluation loop hands over with each observation
             try:
@@ -96,23 +117,35 @@ class WorkerPolicy(Policy):
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def _fail(self, what: str, field: str | None = None) -> WorkerError:
+    def _fail(self, what: str, field: str | None = None, public: str | None = None) -> WorkerError:
         self.close()
-        return WorkerError(what, field)
+        return WorkerError(what, field, public)
+
+    def start_budget(self, seconds: float, what: str) -> None:
+        self.budget = (time.monotonic() + seconds, what)
 
     def _call(self, header: dict, arrays: dict, timeout: float, what: str) -> tuple[dict, dict]:
         deadline = time.monotonic() + timeout
+        budget = self.budget is not None and self.budget[0] < deadline
+        if budget:
+            deadline = self.budget[0]
         try:
             wire.send(self.proc.stdin.fileno(), header, arrays, deadline)
             reply, out = wire.recv(self.proc.stdout.fileno(), deadline, max_payload=self._max_reply(arrays))
         except TimeoutError:
+            if budget:
+                raise self._fail(f"the worker exceeded its wall-clock budget ({self.budget[1]})") from None
             raise self._fail(f"the worker did not answer within {timeout:g} s ({what})") from None
         except (wire.WireError, OSError) as e:
             raise self._died(what, e) from None
         if reply["op"] == "error":  # the worker's own report: a rejected field, or its exception
             field = reply.get("field")
             message = str(reply.get("message", ""))
-            raise self._fail(message if field else f"evaluation failed: {message} ({what})", field)
+            kind = message.partition(":")[0] if re.fullmatch(r"[A-Za-z_]\w{0,40}(Error|Exception|Exit)", message.partition(":")[0]) \
+                else "an error"
+            public = f"refused by its worker while {what}" if field else f"evaluation failed: {kind} ({what})"
+            raise self._fail(message if field else f"evaluation failed: {message} ({what})", field,
+                             public + " (details in the harness log)")
         return reply, out
 
     @staticmethod
@@ -134,7 +167,9 @@ class WorkerPolicy(Policy):
                   (" (its CPU-time limit)" if -code == signal.SIGXCPU else "")
         else:
             how = f"exited with code {code}"
-        return self._fail(f"the worker {how} while {what}" + (f"; its last words: {last}" if last else ""))
+        return self._fail(f"the worker {how} while {what}" + (f"; its last words: {last}" if last else ""),
+                          public=f"the worker {how} while {what}" + ("; its last words are in the harness log"
+                                                                     if last else ""))
 
     def reset(self, mask: torch.Tensor) -> None:
         self._call({"op": "reset"}, {"mask": mask.numpy()}, self.limits.step_s, f"resetting at step {self.steps}")
