@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import re
 
+import pytest
+
 from crowdbench.leaderboard import run
 from crowdbench.leaderboard.sandbox import Limits, bubblewrap
 from crowdbench.leaderboard.worker import WorkerPolicy
@@ -28,6 +30,7 @@ def rows(readme: str) -> list[str]:
     return [ln for ln in readme.splitlines() if ln.startswith(("| Straight to goal", "| ORCA"))]
 
 
+@pytest.mark.slow
 def test_a_sleeping_submission_is_one_rejection_and_the_other_rows_stay(tmp_path, monkeypatch):
     # the straight and ORCA rows of a run without it, to compare byte for byte
     clean = tmp_path / "clean"

@@ -6,15 +6,15 @@ from __future__ import annotations
 
 import os
 import re
-import shutil
 import socket
 import threading
 from pathlib import Path
 
 import pytest
+from conftest import require_system
 
 from crowdbench.leaderboard import run
-from crowdbench.leaderboard.sandbox import Limits
+from crowdbench.leaderboard.sandbox import Limits, bubblewrap
 from crowdbench.leaderboard.worker import WorkerError, WorkerPolicy
 from tests.test_isolation import ENCODER, add_straight, make_learned
 
@@ -23,8 +23,8 @@ MODES = ["bubblewrap", "none"]
 
 
 def limits(mode: str, **kw) -> Limits:
-    if mode == "bubblewrap" and shutil.which("bwrap") is None:
-        pytest.skip("needs bubblewrap: apt-get install bubblewrap")
+    if mode == "bubblewrap":
+        require_system("bwrap", bubblewrap() is not None)
     return Limits(step_s=20.0, load_s=120.0, memory_gb=6.0, sandbox=mode, **kw)
 
 
@@ -143,6 +143,7 @@ for where in (tempfile.gettempdir(), "/dev/shm", "/run", "/var/tmp", os.path.exp
 '''
 
 
+@pytest.mark.slow
 def test_a_confined_worker_scratch_is_its_own_bounded_tmpfs(tmp_path):
     """H3: a worker filled the temp file system it shared with the harness (64 MB files, no count
     limit); every other submission was then rejected with `No space left on device`."""

@@ -108,6 +108,7 @@ while True:
 '''
 
 
+@pytest.mark.slow
 def test_adversarial_worker_replies_are_one_line_rejections(tmp_path, monkeypatch):
     """A worker that answers with NaN, wrong shapes or dtypes, garbage, a flood, an exit or silence."""
     script = tmp_path / "fake_worker.py"
@@ -167,6 +168,7 @@ def _not_json(constant: str):
     raise AssertionError(f"{constant} in results.json (not strict JSON)")
 
 
+@pytest.mark.slow
 def test_random_checkpoints_never_change_another_row(tmp_path):
     rng = random.Random(SEED)
     real = _REAL.read_bytes()

@@ -7,12 +7,12 @@ the host's socket, and the table is written."""
 from __future__ import annotations
 
 import random
-import shutil
 
 import pytest
+from conftest import require_system
 
 from crowdbench.leaderboard import run
-from crowdbench.leaderboard.sandbox import Limits
+from crowdbench.leaderboard.sandbox import Limits, bubblewrap
 from tests.test_budget import rows
 from tests.test_confinement import Listener
 from tests.test_entries import add_orca, learned
@@ -87,9 +87,9 @@ def trick(rng: random.Random, label: str) -> str:
     return label[:i] + t + label[i:]
 
 
+@pytest.mark.slow
 def test_hostile_workers_and_label_tricks_leave_straight_and_orca_identical(tmp_path):
-    if shutil.which("bwrap") is None:
-        pytest.skip("needs bubblewrap: apt-get install bubblewrap")
+    require_system("bwrap", bubblewrap() is not None)
     rng = random.Random(SEED)
     lim = Limits(step_s=10.0, load_s=120.0, memory_gb=6.0, scratch_mb=16, sandbox="bubblewrap",
                  budget_factor=20.0, budget_floor_s=6.0)

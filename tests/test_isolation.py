@@ -128,6 +128,7 @@ def add_straight(root: Path) -> None:
                                        "authors: [crowdbench]\n")
 
 
+@pytest.mark.slow
 def test_hostile_submissions_cannot_change_another_row(tmp_path):
     """Confined where bubblewrap works; without it every hostile case but the file writer (whose
     protection is the read-only file system) still applies."""
@@ -165,6 +166,7 @@ def test_hostile_submissions_cannot_change_another_row(tmp_path):
     assert "Straight to goal" in readme and "exit0" in readme.split("## Rejected")[1]
 
 
+@pytest.mark.slow
 def test_two_submissions_with_one_module_name_each_get_their_own(tmp_path):
     """Finding 3: the second `evil.py` was evaluated with the first one's class (sys.modules)."""
     root = tmp_path / "lb"

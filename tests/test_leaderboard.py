@@ -59,6 +59,7 @@ class Pickled(nn.Module):  # a checkpoint holding this object needs code executi
     pass
 
 
+@pytest.mark.slow
 def test_valid_and_malformed_submissions(tmp_path):
     root = tmp_path / "lb"
     add_straight(root)
@@ -108,6 +109,7 @@ def test_valid_and_malformed_submissions(tmp_path):
     assert (root / "leaderboard.png").stat().st_size > 1000
 
 
+@pytest.mark.slow
 def test_check_cache_and_only(tmp_path):
     root = tmp_path / "lb"
     add_straight(root)
@@ -141,6 +143,7 @@ def test_check_cache_and_only(tmp_path):
     assert any(m.startswith("toy: evaluated") for m in log)
 
 
+@pytest.mark.slow
 def test_seeds_grouped(tmp_path):
     root = tmp_path / "lb"
     for s in (0, 1):
@@ -152,6 +155,7 @@ def test_seeds_grouped(tmp_path):
     assert "## Per-seed results" in readme and "| Toy MLP | toy_s1 | 1 |" in readme
 
 
+@pytest.mark.slow
 def test_external_encoder_import_and_entry_point(tmp_path, monkeypatch):
     """Both ways of naming an external encoder; its code is imported by the submission's worker
     process only, never by the harness."""
@@ -215,6 +219,7 @@ def test_diff_rows_names_sections():
     assert msg.startswith("[A] row 'two': differs")
 
 
+@pytest.mark.slow
 def test_parallel_jobs_give_the_same_table(tmp_path):
     root = tmp_path / "lb"
     add_straight(root)
@@ -251,6 +256,7 @@ def test_submit_a_run(tmp_path, capsys):
     assert "already exists" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_fingerprint_covers_every_module_an_evaluation_loads(tmp_path):
     """Evaluate one submission of each kind in a fresh interpreter; every crowdbench module it
     loaded must be hashed into the cache fingerprint (else a change to it would leave stale numbers
@@ -437,6 +443,7 @@ class Boom(TinyEncoder):  # passes the harness's 2-observation smoke test, fails
 '''
 
 
+@pytest.mark.slow
 def test_ray_fan_out_gives_the_sequential_numbers(tmp_path, monkeypatch):
     """--launcher ray: one Ray task per submission on a local 2-CPU cluster; the same results.json
     numbers as the sequential harness, and a task that fails rejects only its own submission."""

@@ -156,6 +156,7 @@ def _alive(pid: int) -> bool:
 
 
 @pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="reads the process tree from /proc")
+@pytest.mark.slow
 def test_sigterm_stops_the_pool_and_every_worker(tmp_path):
     """M5: killing `leaderboard --jobs 2` orphaned its pool processes (and their workers)."""
     root = tmp_path / "lb"

@@ -9,7 +9,8 @@ import sys
 
 import pytest
 
-from crowdbench.cli import UsageError, submit_run
+from crowdbench.cli_eval import UsageError
+from crowdbench.cli_submit import submit_run
 from crowdbench.leaderboard import run
 from crowdbench.leaderboard.sandbox import Limits
 from crowdbench.leaderboard.worker import WorkerError, WorkerPolicy
