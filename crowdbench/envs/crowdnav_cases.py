@@ -190,9 +190,9 @@ def crowdnav_case(
         rad = np.array(radii)
         if scen == "circle":
             ref = np.concatenate((placed_s, placed_g))
-            (angle, nx, ny), start = _first_free(u, 3, lambda c: _circle_xy(c, v), ref, np.tile(rad, 2), r)
+            d, start = _first_free(u, 3, partial(_circle_xy, v_pref=v), ref, np.tile(rad, 2), r)
             goal = -start
-            angles[i], noises[i] = angle, (nx, ny)
+            angles[i], noises[i] = d[0] * np.pi * 2, (d[1:] - 0.5) * v  # as _circle_xy computes them
         else:
             sign = -1 if u.take(1)[0] > 0.5 else 1
             _, start = _first_free(u, 2, partial(_square_xy, sign=sign), np.array(placed_s), rad, r)
@@ -246,7 +246,7 @@ MARGIN = 1e-9  # m: decisions this close to the threshold are re-made with Crowd
 
 def _first_free(u: _Draws, width: int, xy, others: np.ndarray, radii: np.ndarray, radius: float):
     """Consume the draws of CrowdNav's rejection loop up to its first accepted candidate; return that
-    candidate's draws (the angle, not the first draw, for circle crossing) and its position.
+    candidate's draws and its position.
 
     Blocks of candidates are placed with array operations and tested against every agent at once; only
     a candidate within ``MARGIN`` of a threshold is decided again by :func:`_too_close` (a norm in
@@ -264,8 +264,7 @@ def _first_free(u: _Draws, width: int, xy, others: np.ndarray, radii: np.ndarray
                                                CROWDNAV.discomfort_dist):
                 continue
             u.take((j + 1) * width)
-            first = d[j, 0] * np.pi * 2 if width == 3 else d[j, 0]
-            return (first, *((d[j, 1:] - 0.5) * CROWDNAV.human_v_pref)), np.array([px, py])
+            return d[j].copy(), np.array([px, py])
         u.take(block * width)
 
 
