@@ -176,7 +176,7 @@ def _run(root: Path, only: list[str] | None = None, check: bool = False, force: 
             continue
         for name in TRACK_ORDER:
             track = TRACKS[name]
-            if not track.fits(sub.kind) or (check and name not in tracks):
+            if not track.fits(sub.kind, sub.data.get("privileged", False)) or (check and name not in tracks):
                 continue
             res_path = root / "results" / d.name / track.results_file
             selected = (only is None or d.name in only) and name in tracks

@@ -93,6 +93,9 @@ def learned_policy(sub: Submission):
         raise SubmissionError(path, "encoder", f"{d['encoder']!r} but the checkpoint was trained with {c_enc!r}")
     if c_algo != d["algo"]:
         raise SubmissionError(path, "algo", f"{d['algo']!r} but the checkpoint was trained with {c_algo!r}")
+    look = (cfg["algo"].get("lookahead") if isinstance(cfg["algo"], dict) else None) if c_algo == "value" else None
+    if look != d.get("lookahead"):
+        raise SubmissionError(path, "lookahead", f"{d.get('lookahead')!r} but the checkpoint acts with lookahead {look!r}")
     home, got = d.get("track", "v1"), trained_track(cfg)
     if got != home:
         raise SubmissionError(path, "track", f"{home!r} but the checkpoint was trained on "
@@ -126,9 +129,16 @@ def build_policy(sub: Submission, track: Track = TRACKS["v1"], limits: Limits = 
     ``track``'s env config, as ``crowdbench eval`` with it builds them."""
     if sub.kind == "learned":
         try:
-            return WorkerPolicy(sub.dir, sub.name, limits)
+            worker = WorkerPolicy(sub.dir, sub.name, limits)
         except WorkerError as e:
             raise SubmissionError(sub.yaml_path, e.field, str(e), e.public) from None
+        # the worker is not trusted to say how it acts: the candidates it is handed follow submission.yaml
+        declared, said = getattr(worker, "lookahead", (None,))[0], sub.data.get("lookahead")
+        if declared != said:
+            worker.close()
+            raise SubmissionError(sub.yaml_path, "lookahead", f"{said!r} but its policy acts with lookahead "
+                                                              f"{declared!r}")
+        return worker
     try:
         policy = policies.build(*baseline_args(sub.data, track_config(track)))
     except policies.PolicyError as e:
@@ -158,8 +168,11 @@ def evaluate_submission(sub: Submission, policy, scenes: list[str], episodes: in
                                                                             or not track.replay), "fingerprint": fp}
     if track.name != "v1":
         res["harness"]["track"] = track.name
-    if sub.kind == "oracle":
+    if sub.data.get("lookahead"):
+        res["lookahead"] = sub.data["lookahead"]
+    if sub.data.get("privileged"):  # the oracle; a value entry that reads the simulator's next human states
         res["privileged"] = True
+    if sub.kind == "oracle":
         res["unavoidable"] = unavoidable(res)
     return res
 

@@ -18,6 +18,8 @@ import yaml
 
 from crowdbench import policies
 from crowdbench.algos.registry import names as algo_names
+from crowdbench.envs.lookahead import MODELS as LOOKAHEAD_MODELS
+from crowdbench.envs.lookahead import PRIVILEGED_MODELS
 from crowdbench.leaderboard.text import bad_char, one_line, short
 from crowdbench.leaderboard.tracks import TRACK_ORDER, trained_track
 
@@ -85,18 +87,22 @@ SCHEMA: dict[str, tuple[tuple, tuple, str]] = {
     "encoder": ((str,), ("learned",), "registered encoder name (crowdbench.models.ENCODERS)"),
     "encoder_import": ((str,), (), "module:Class of an external encoder, registered under `encoder`"),
     "encoder_entry_points": ((str,), (), "entry-point group to load the encoder from, e.g. crowdbench.encoders"),
-    "algo": ((str,), ("learned",), "td3 | ddpg | sac"),
+    "algo": ((str,), ("learned",), "the training algorithm (crowdbench.algos registry): td3 | ddpg | sac | ppo | value"),
     "experiment": ((str,), (), "the Hydra experiment config the run was trained with, e.g. leaderboard"),
     "track": ((str,), (), "the track the entry was trained on (default v1): " + " | ".join(TRACK_ORDER)),
     "overrides": ((dict, list), (), "baseline/oracle parameters {key: value}; learned: the training overrides"),
     "authors": ((list, str), KINDS, "list of authors"),
     "link": ((str,), (), "paper or code URL"),
     "seed": ((int,), (), "training seed (learned) or policy seed"),
-    "privileged": ((bool,), ("oracle",), "true for the oracle (knows the humans' future), false otherwise"),
+    "privileged": ((bool,), ("oracle",), ("true for the oracle (knows the humans' future) and for a value entry "
+                                          "with lookahead: query (reads the humans' next states); false otherwise")),
+    "lookahead": ((str,), (), ("algo value: the humans' next-state model its candidates are computed with: "
+                               + " | ".join(LOOKAHEAD_MODELS) + " (query: privileged)")),
     "checkpoint": ((str,), (), "checkpoint file name inside the submission directory (default checkpoint.pt)"),
     "notes": ((str,), (), "free text"),
 }
-LEARNED_ONLY = ("encoder", "encoder_import", "encoder_entry_points", "algo", "checkpoint", "experiment", "track")
+LEARNED_ONLY = ("encoder", "encoder_import", "encoder_entry_points", "algo", "checkpoint", "experiment", "track",
+                "lookahead")
 
 
 def name_problem(name) -> str | None:
@@ -197,11 +203,7 @@ def validate_schema(path: Path, data) -> dict:
         if key in data and not rx.fullmatch(data[key]):
             what = "is not of the form module:Class" if key == "encoder_import" else f"must match {rx.pattern}"
             raise SubmissionError(path, key, f"{short(data[key])} {what}")
-    priv = data.get("privileged", False)
-    if kind == "oracle" and priv is not True:
-        raise SubmissionError(path, "privileged", "the oracle knows the humans' future: it must say privileged: true")
-    if kind != "oracle" and priv:
-        raise SubmissionError(path, "privileged", "only the oracle may be privileged")
+    _check_privilege(path, data)
     if kind == "baseline" and data["policy"] not in BASELINE_POLICIES:
         raise SubmissionError(path, "policy", f"{short(data['policy'])} is not a baseline; valid: "
                                               f"{', '.join(BASELINE_POLICIES)}")
@@ -219,6 +221,27 @@ def validate_schema(path: Path, data) -> dict:
     if kind == "learned" and isinstance(over, list) and not all(isinstance(o, str) for o in over):
         raise SubmissionError(path, "overrides", "a list of key=value strings (the training overrides)")
     return data
+
+
+def _check_privilege(path: Path, data: dict) -> None:
+    """The oracle and a value entry with the ``query`` lookahead read the humans' future: they must say so
+    (``privileged: true``), and nothing else may."""
+    kind, priv, look = data["kind"], data.get("privileged", False), data.get("lookahead")
+    if look is not None and look not in LOOKAHEAD_MODELS:
+        raise SubmissionError(path, "lookahead", f"{short(look)} is not one of {', '.join(LOOKAHEAD_MODELS)}")
+    if look is not None and data.get("algo") != "value":
+        raise SubmissionError(path, "lookahead", "only algo: value entries act by lookahead")
+    if kind == "learned" and data.get("algo") == "value" and look is None:
+        raise SubmissionError(path, "lookahead", f"an algo: value entry must name its lookahead model "
+                                                 f"({' | '.join(LOOKAHEAD_MODELS)})")
+    needs = kind == "oracle" or look in PRIVILEGED_MODELS
+    if needs and priv is not True:
+        why = "the oracle knows the humans' future" if kind == "oracle" else \
+            f"lookahead {look} reads the humans' next states from the simulator"
+        raise SubmissionError(path, "privileged", f"{why}: it must say privileged: true")
+    if not needs and priv:
+        raise SubmissionError(path, "privileged", "only the oracle and value entries with lookahead: "
+                                                  f"{' | '.join(PRIVILEGED_MODELS)} are privileged")
 
 
 def baseline_args(data: dict, cfg: dict | None = None) -> tuple[str, dict, dict]:
@@ -366,6 +389,10 @@ def make_submission(run_dir: Path, name: str, entry: str, authors: list[str], ov
     data = {"name": name, "kind": "learned", "entry": entry, "encoder": cfg["encoder"]["name"],
             "algo": cfg["algo"]["name"], "seed": int(cfg["seed"]), "overrides": overrides, "authors": authors}
     track = trained_track(cfg)
+    if data["algo"] == "value":  # the lookahead model it acts with; query reads the simulator: privileged
+        data["lookahead"] = cfg["algo"]["lookahead"]
+        if data["lookahead"] in PRIVILEGED_MODELS:
+            data["privileged"] = True
     for key, value in (("experiment", experiment), ("track", None if track == "v1" else track), ("link", link),
                        ("notes", notes)):
         if value:

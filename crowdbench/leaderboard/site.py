@@ -148,7 +148,8 @@ class Site:
         tracks = list(self.by_track)
         rows = []
         for (entry, origin), got in sorted(per.items(), key=lambda kv: (TRACK_ORDER.index(kv[0][1]), kv[0][0].lower())):
-            cells = [f'<td data-sort="{e(entry)}"><a href="{self.href((entry, origin))}">{e(entry)}</a></td>',
+            shown = label(next(iter(got.values())), escape=False)  # a privileged entry says so, as in its track's table
+            cells = [f'<td data-sort="{e(entry)}"><a href="{self.href((entry, origin))}">{e(shown)}</a></td>',
                      td(None, origin),
                      td(max(map(len, got.values())), str(max(map(len, got.values()))))]
             for t in tracks:
@@ -249,7 +250,7 @@ class Site:
     def entry_page(self, entry: tuple, media: dict[str, dict | None]) -> str:
         names = self.names(entry)
         rs = self.entries[entry]
-        kinds = sorted({r["meta"]["kind"] for r in rs})
+        kinds = sorted({r["meta"]["kind"] + (" (privileged)" if r.get("privileged") else "") for r in rs})
         origins = sorted({trained_on(r) for r in rs if trained_on(r)})
         seeds = ", ".join(f'<a href="#{e(quote(n))}">{e(n)}</a>' for n in names)
         body = ["<header>", '<p><a href="../index.html">← leaderboard</a></p>', f"<h1>{e(entry[0])}</h1>",

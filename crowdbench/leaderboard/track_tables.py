@@ -90,7 +90,8 @@ def transfer_table(by_track: dict[str, list[dict]]) -> list[str]:
             g = sorted(per.get(t, []), key=lambda r: r["meta"]["submission"])
             c = group_cell(g, TRACKS[t], "success_rate", 3)[1] if g else "—"
             cells.append(f"**{c}**" if t == origin and c != "—" else c)
-        rows.append((TRACK_ORDER.index(origin), entry.lower(), [md(entry), f"`{origin}`", str(seeds), *cells]))
+        rows.append((TRACK_ORDER.index(origin), entry.lower(),
+                     [label(next(iter(per.values()))), f"`{origin}`", str(seeds), *cells]))  # privileged: marked
     L += ["| " + " | ".join(c) + " |" for *_, c in sorted(rows)]
     return L
 

@@ -12,8 +12,9 @@ track                  protocol
 =====================  =========================================================================
 
 Every submission is evaluated on every track it fits: every robot policy fits all of them; the
-privileged oracle only the tracks where the humans' future does not depend on the robot (v1, whose
-humans are a recording, and CrowdNav with its invisible robot), not reactive replay. A learned
+privileged entries (the oracle, value-lookahead entries that read the simulator's next human states)
+only the tracks where the humans' future does not depend on the robot (v1, whose humans are a
+recording, and CrowdNav with its invisible robot), not reactive replay. A learned
 submission names the track it was trained on (``track``, default ``v1``; the harness checks it
 against the checkpoint's config): each track's table lists the baselines, the oracle where it
 applies and the entries trained on that track; the transfer table lists every learned entry on every
@@ -57,8 +58,10 @@ class Track:
         scenario, n = self.setting.split("_n")
         return ("env=crowdnav", f"env.scenario={scenario}", f"env.n_humans={n}")
 
-    def fits(self, kind: str) -> bool:
-        return kind != "oracle" or self.privileged_ok
+    def fits(self, kind: str, privileged: bool = False) -> bool:
+        """Privileged entries (the oracle, a value entry with the ``query`` lookahead) only where the humans'
+        future ignores the robot: there their knowledge is of the task, elsewhere it does not exist."""
+        return not (kind == "oracle" or privileged) or self.privileged_ok
 
 
 TRACKS = {t.name: t for t in (

@@ -1,0 +1,99 @@
+"""Value-lookahead entries on the leaderboard: a `query` entry reads the simulator's next human states, so
+it must say `privileged: true`, is evaluated only where that knowledge exists (not on reactive replay),
+is labelled privileged in every table, and its worker cannot act with another lookahead than it declares."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import yaml
+from omegaconf import OmegaConf
+
+from crowdbench.algos.checkpoint import save_checkpoint
+from crowdbench.algos.value import ValueModel
+from crowdbench.cli import compose
+from crowdbench.leaderboard import run
+from crowdbench.leaderboard.schema import SubmissionError, make_submission, read_submission
+from crowdbench.leaderboard.tracks import TRACK_ORDER, TRACKS
+from tests.test_entries import add_orca
+
+
+def value_checkpoint(path: Path, lookahead: str, net: str = "cadrl") -> dict:
+    cfg = OmegaConf.to_container(compose(["env=crowdnav", "algo=value", f"algo.net={net}",
+                                          f"algo.lookahead={lookahead}"]), resolve=True)
+    model = ValueModel(OmegaConf.create(cfg["algo"]), OmegaConf.create(cfg["env"]), cfg["encoder"])
+    save_checkpoint(path, {"config": cfg, "actor": model.net.state_dict(), "frames": 0})
+    return cfg
+
+
+def value_entry(root: Path, name: str, lookahead: str, trained: str = "query", extra: str = "") -> Path:
+    """A value submission whose checkpoint acts with ``trained``; its yaml says ``lookahead`` (+ ``extra``)."""
+    d = root / "submissions" / name
+    d.mkdir(parents=True)
+    cfg = value_checkpoint(d / "checkpoint.pt", trained)
+    priv = "privileged: true\n" if lookahead == "query" else ""
+    (d / "submission.yaml").write_text(
+        f"name: {name}\nkind: learned\nentry: CADRL (value, {lookahead})\nencoder: {cfg['encoder']['name']}\n"
+        f"algo: value\nlookahead: {lookahead}\n{priv}track: crowdnav-circle5\nauthors: [t]\n{extra}")
+    return d
+
+
+@pytest.mark.parametrize("yaml_text, field", [
+    ("algo: value\n", "lookahead"),                                  # a value entry names its model
+    ("algo: value\nlookahead: query\n", "privileged"),               # query reads the simulator: must say so
+    ("algo: value\nlookahead: cv\nprivileged: true\n", "privileged"),  # cv knows nothing the robot cannot see
+    ("algo: value\nlookahead: oracle\nprivileged: true\n", "lookahead"),
+    ("algo: td3\nlookahead: cv\n", "lookahead"),                     # only value entries act by lookahead
+    ("algo: td3\nprivileged: true\n", "privileged"),
+])
+def test_privilege_must_be_declared_exactly(tmp_path, yaml_text, field):
+    d = tmp_path / "x"
+    d.mkdir()
+    (d / "checkpoint.pt").write_bytes(b"unread")
+    (d / "submission.yaml").write_text(f"name: x\nkind: learned\nencoder: mlp\nauthors: [t]\n{yaml_text}")
+    with pytest.raises(SubmissionError) as e:
+        read_submission(d)
+    assert e.value.field == field
+
+
+def test_privileged_entries_fit_only_tracks_whose_humans_ignore_the_robot():
+    fits = {t: TRACKS[t].fits("learned", privileged=True) for t in TRACK_ORDER}
+    assert fits == {t: TRACKS[t].fits("oracle") for t in TRACK_ORDER}
+    assert not fits["v2-orca"] and not fits["v2-sfm"] and fits["v1"] and fits["crowdnav-circle5"]
+    assert all(TRACKS[t].fits("learned") for t in TRACK_ORDER)  # cv and actor entries: every track
+
+
+def test_make_submission_declares_the_lookahead_and_its_privilege(tmp_path):
+    for look in ("query", "cv"):
+        run_dir = tmp_path / f"run_{look}"
+        run_dir.mkdir()
+        value_checkpoint(run_dir / "checkpoint.pt", look)
+        sub = make_submission(run_dir, f"cadrl_value_{look}_s0", "CADRL (value)", ["t"], [], root=tmp_path / "lb")
+        data = yaml.safe_load((sub / "submission.yaml").read_text())
+        assert data["algo"] == "value" and data["lookahead"] == look
+        assert data.get("privileged", False) is (look == "query")
+        assert data["track"] == "crowdnav-circle5"
+
+
+@pytest.mark.slow
+def test_a_query_entry_is_evaluated_privileged_and_labelled_so(tmp_path):
+    """Through the harness and its worker on CrowdNav circle 5: results marked privileged, the row labelled
+    so in the track table; a worker whose checkpoint acts with another model than its yaml is refused."""
+    root = tmp_path / "lb"
+    add_orca(root)
+    value_entry(root, "q", "query")
+    value_entry(root, "c", "cv", trained="cv")
+    value_entry(root, "liar", "cv", trained="query")  # says cv, acts with the simulator's next states
+    logs: list[str] = []
+    code = run(root, episodes=3, tracks=["crowdnav-circle5"], log=logs.append)
+    assert code == 1  # the liar is refused
+    res = json.loads((root / "results" / "q" / "crowdnav-circle5.json").read_text())
+    assert res["privileged"] is True and res["lookahead"] == "query"
+    cv = json.loads((root / "results" / "c" / "crowdnav-circle5.json").read_text())
+    assert "privileged" not in cv and cv["lookahead"] == "cv"
+    assert not (root / "results" / "liar").exists()
+    assert any("liar" in line and "lookahead" in line for line in logs), logs
+    board = (root / "TRACKS.md").read_text()
+    assert "CADRL (value, query) (PRIVILEGED)" in board and "CADRL (value, cv) (PRIVILEGED)" not in board
