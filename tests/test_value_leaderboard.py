@@ -97,3 +97,21 @@ def test_a_query_entry_is_evaluated_privileged_and_labelled_so(tmp_path):
     assert any("liar" in line and "lookahead" in line for line in logs), logs
     board = (root / "TRACKS.md").read_text()
     assert "CADRL (value, query) (PRIVILEGED)" in board and "CADRL (value, cv) (PRIVILEGED)" not in board
+
+
+def test_a_row_above_the_privileged_oracle_is_reported():
+    """The oracle claims the task's upper bound where it is privileged: a learned row above it there is named;
+    on reactive replay (no oracle) nothing is compared."""
+    from crowdbench.leaderboard.track_tables import above_the_oracle
+
+    def result(kind, entry, success, track="crowdnav-circle5", privileged=False):
+        r = {"meta": {"kind": kind, "entry": entry, "submission": f"{entry}_{success}"},
+             "scenes": {"circle_n5": {"success_rate": {"mean": success, "ci95": [success, success]}}},
+             "submission": {"track": track}}
+        return {**r, "privileged": True} if privileged or kind == "oracle" else r
+
+    board = {"crowdnav-circle5": [result("oracle", "Oracle", 0.874), result("learned", "SARL", 0.99, privileged=True),
+                                  result("learned", "SARL", 0.98, privileged=True), result("learned", "TD3", 0.8)]}
+    assert above_the_oracle(board) == ["crowdnav-circle5: SARL (PRIVILEGED) 0.985 > the oracle's 0.874"]
+    board["crowdnav-circle5"][0]["scenes"]["circle_n5"]["success_rate"]["mean"] = 1.0
+    assert above_the_oracle(board) == []

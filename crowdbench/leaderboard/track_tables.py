@@ -48,6 +48,23 @@ def group_cell(g: list[dict], track: Track, metric: str, digits: int) -> tuple[f
     return seed_cell([headline(r, track, metric, digits)[0] for r in g], digits)
 
 
+def above_the_oracle(by_track: dict[str, list[dict]]) -> list[str]:
+    """Rows that beat the oracle where it claims to be the task's upper bound (a privileged track): any such
+    row means the oracle's search, not the task, bounded it (docs/protocol.md, "Oracle")."""
+    out = []
+    for name, results in by_track.items():
+        track = TRACKS[name]
+        oracle = [r for r in results if r["meta"]["kind"] == "oracle"]
+        if not track.privileged_ok or not oracle:
+            continue
+        bound = headline(oracle[0], track, "success_rate", 3)[0]
+        for g in group_results([r for r in results if r["meta"]["kind"] == "learned"]):
+            got = group_cell(g, track, "success_rate", 3)[0]
+            if bound is not None and got is not None and got > bound:
+                out.append(f"{name}: {label(g, escape=False)} {got:.3f} > the oracle's {bound:.3f}")
+    return out
+
+
 def track_table(track: Track, results: list[dict], scenes: list[str]) -> list[str]:
     """Baselines, the oracle (where it applies) and the entries trained on ``track``."""
     home = [r for r in results if trained_on(r) in (None, track.name)]
