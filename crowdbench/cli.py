@@ -144,14 +144,16 @@ def run_one(cfg, overrides: list[str]) -> dict:
     if cfg.algo.name == "value":  # value-based lookahead: its own loop and policy (crowdbench/cli_value.py)
         from crowdbench.cli_value import run_value
 
-        if cfg.resume:
-            raise UsageError("algo=value does not resume yet (resume=true)")
         out = output_dir(cfg, "run", f"value-{cfg.algo.net}-{cfg.algo.lookahead}")
         with claimed_output(out):
             try:
-                return run_value(cfg, out, overrides)
+                return run_value(cfg, out, overrides, resume=bool(cfg.resume))
             except ValueError as e:
                 raise UsageError(str(e)) from None
+            except KeyboardInterrupt:  # deep V-learning wrote its snapshot (algos/value_train.py RESUME_FILE)
+                if not (out / "resume.pt").is_file():
+                    raise Interrupted(f"interrupted during the imitation phase; nothing to resume in {out}") from None
+                raise Interrupted(f"interrupted; resume with: {resume_command(overrides, out)}") from None
     out = output_dir(cfg, "run", f"{cfg.algo.name}-{cfg.encoder.name}")
     try:
         probe = make_probe(cfg)

@@ -12,13 +12,14 @@ import time
 from pathlib import Path
 
 
-def run_value(cfg, out: Path, overrides: list[str], evaluate=None) -> dict:
-    """Train into ``out`` and evaluate (``evaluate(policy, cfg, out, overrides)``; default: CrowdNav's
-    500 test cases of ``env.eval_settings``). Results carry ``privileged: true`` with ``lookahead=query``."""
+def run_value(cfg, out: Path, overrides: list[str], evaluate=None, resume: bool = False) -> dict:
+    """Train into ``out`` (``resume``: continue its deep V-learning) and evaluate (``evaluate(policy, cfg, out,
+    overrides)``; default: CrowdNav's 500 test cases of ``env.eval_settings``). Results carry ``privileged:
+    true`` with ``lookahead=query``."""
     from crowdbench.algos.checkpoint import policy_from_checkpoint
     from crowdbench.algos.value_train import train_value
 
-    stats = train_value(cfg, out)
+    stats = train_value(cfg, out, resume=resume)
     policy = policy_from_checkpoint(out / "checkpoint.pt")
     t0 = time.perf_counter()
     if evaluate is None:

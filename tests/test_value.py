@@ -360,7 +360,8 @@ def test_a_value_submission_in_a_worker_gives_the_in_process_outcomes(tmp_path):
     model = value_model("cadrl")
     save_checkpoint(sub / "checkpoint.pt", {"config": cfg, "actor": model.net.state_dict(), "frames": 0})
     (sub / "submission.yaml").write_text(f"name: value_s0\nkind: learned\nentry: CADRL (value)\nencoder: "
-                                         f"{cfg['encoder']['name']}\nalgo: value\ntrack: crowdnav-circle5\nauthors: [t]\n")
+                                         f"{cfg['encoder']['name']}\nalgo: value\nlookahead: query\nprivileged: true\n"
+                                         "track: crowdnav-circle5\nauthors: [t]\n")
     short = CrowdNavConfig(time_limit=25)
     local = evaluate_crowdnav(policy_from_checkpoint(sub / "checkpoint.pt"), short, episodes=3)
     with WorkerPolicy(sub, "value_s0", Limits(step_s=30, load_s=60)) as remote:
@@ -395,3 +396,40 @@ def test_an_existing_encoder_as_the_value_network(name):
             ref = net.head(net.encoder(robot[None], humans[None], mask[:1])[1])
             assert torch.allclose(v[b], ref[0], atol=1e-5)
         assert torch.allclose(net(x[:, [4, 2, 0, 3, 1]], mask), v, atol=1e-5)
+
+
+def test_resume_continues_deep_v_learning_bit_for_bit(tmp_path, monkeypatch):
+    """Ctrl-C during deep V-learning writes a snapshot; ``resume`` continues from it without repeating the
+    imitation and ends with the weights of the run that was never stopped. Another recipe is refused."""
+    import crowdbench.algos.value_train as vt
+    from crowdbench.algos.checkpoint import load_checkpoint
+    from crowdbench.cli import compose
+
+    cfg = compose(["env=crowdnav", "algo=value", "algo.net=cadrl", "algo.batch=4", "algo.il_episodes=4",
+                   "algo.il_steps=3", "algo.episodes=24", "algo.train_batches=2", "algo.batch_size=8",
+                   "algo.val_every=0", "algo.target_update=8", "env.time_limit=20"])
+    vt.train_value(cfg, tmp_path / "whole", log=lambda d: None)
+    calls, real = [], vt.rl_round
+
+    def stopped(*a, **k):
+        calls.append(1)
+        if len(calls) == 4:
+            raise KeyboardInterrupt
+        return real(*a, **k)
+
+    monkeypatch.setattr(vt, "rl_round", stopped)
+    with pytest.raises(KeyboardInterrupt):
+        vt.train_value(cfg, tmp_path / "part", log=lambda d: None)
+    monkeypatch.setattr(vt, "rl_round", real)
+    snap = load_checkpoint(tmp_path / "part" / vt.RESUME_FILE)
+    assert snap["learner"]["done"] == 12 and not (tmp_path / "part" / "checkpoint.pt").exists()
+    monkeypatch.setattr(vt, "imitation", lambda *a, **k: pytest.fail("the imitation ran again"))
+    vt.train_value(cfg, tmp_path / "part", log=lambda d: None, resume=True)
+    whole, part = (load_checkpoint(tmp_path / d / "checkpoint.pt") for d in ("whole", "part"))
+    assert part["episodes"] == whole["episodes"] == 24
+    assert all(torch.equal(whole["actor"][k], v) for k, v in part["actor"].items())
+    other = compose(["env=crowdnav", "algo=value", "algo.net=cadrl", "algo.batch=4", "algo.lr=0.5"])
+    with pytest.raises(ValueError, match="written with other algo"):
+        vt.train_value(other, tmp_path / "part", log=lambda d: None, resume=True)
+    with pytest.raises(ValueError, match="not found"):
+        vt.train_value(cfg, tmp_path / "none", log=lambda d: None, resume=True)

@@ -196,43 +196,97 @@ def validate(model: ValueModel, world, episodes: dict) -> dict:
             "nav_time": float(t[ok].mean()) if ok.any() else float("nan")}
 
 
-def v_learning(cfg, model: ValueModel, world, sampler, memory: ReplayBuffer, log, val_episodes=None) -> dict:
-    """Phase 2: epsilon-greedy deep V-learning (rounds of ``B`` episodes) until ``episodes`` or ``max_minutes``."""
-    a, g, B = cfg.algo, model.gamma_bar, world.B
-    gen = torch.Generator().manual_seed(int(cfg.seed) + 1)
-    target = copy.deepcopy(model.net)
-    opt = make_optimizer(model.net, a.optimizer, a.lr)
-    t0, done, credit, frames, last = time.perf_counter(), 0, 0.0, 0, {}
-    best = Best(model, world, val_episodes if a.keep_best else None, log)  # scores the imitation network first
-    while done < a.episodes:
-        if a.max_minutes and time.perf_counter() - t0 > 60 * a.max_minutes:
-            break
-        eps = epsilon(done + torch.arange(B), a.epsilon_start, a.epsilon_end, a.epsilon_decay)
+RESUME_FILE = "resume.pt"  # deep V-learning's whole state: a stopped run continues from it (resume=true)
+SNAPSHOT_S = 60.0  # s between snapshots (the memory is ~25 MB at capacity; Ctrl-C writes one too)
+
+
+class Learner:
+    """Deep V-learning's state carried from round to round; :meth:`state_dict` is all a resume needs."""
+
+    def __init__(self, cfg, model: ValueModel, sampler, memory: ReplayBuffer, best: Best):
+        self.cfg, self.model, self.sampler, self.memory, self.best = cfg, model, sampler, memory, best
+        self.gen = torch.Generator().manual_seed(int(cfg.seed) + 1)
+        self.target = copy.deepcopy(model.net)
+        self.opt = make_optimizer(model.net, cfg.algo.optimizer, cfg.algo.lr)
+        self.done, self.credit, self.frames, self.spent, self.last = 0, 0.0, 0, 0.0, {}
+
+    def state_dict(self) -> dict:
+        return {"net": self.model.net.state_dict(), "target": self.target.state_dict(), "opt": self.opt.state_dict(),
+                "gen": self.gen.get_state(), "torch_rng": torch.get_rng_state(), "sampler": self.sampler.state_dict(),
+                "memory": self.memory.state_dict(), "best": self.best.state_dict(), "done": self.done,
+                "credit": self.credit, "frames": self.frames, "spent": self.spent, "last": self.last}
+
+    def load_state_dict(self, s: dict) -> None:
+        self.model.net.load_state_dict(s["net"])
+        self.target.load_state_dict(s["target"])
+        self.opt.load_state_dict(s["opt"])
+        self.gen.set_state(s["gen"])
+        torch.set_rng_state(s["torch_rng"])  # the memory's sampler draws from torch's global generator
+        self.sampler.load_state_dict(s["sampler"])
+        self.memory.load_state_dict(s["memory"])
+        self.best.load_state_dict(s["best"])
+        self.done, self.credit, self.frames, self.spent, self.last = \
+            s["done"], s["credit"], s["frames"], s["spent"], s["last"]
+
+
+def rl_round(lr: Learner, world, val_episodes, log) -> None:
+    """One round of ``B`` epsilon-greedy episodes, their targets into the memory, the owed gradient steps."""
+    a, model, B = lr.cfg.algo, lr.model, world.B
+    eps = epsilon(lr.done + torch.arange(B), a.epsilon_start, a.epsilon_end, a.epsilon_decay)
+    model.net.eval()
+    r = run_round(model, world, lr.sampler(B), lookahead_act(model, world, eps, lr.gen))
+    stored = store(lr.memory, r, round_targets(r, lr.target, model.gamma_bar), bool(a.store_timeouts))
+    lr.frames += int(r["active"].sum())
+    lr.credit += a.train_batches * B  # gradient steps owed: train_batches per finished episode
+    steps = int(lr.credit)
+    lr.credit -= steps
+    model.net.train()
+    loss = fit(model.net, lr.memory, lr.opt, steps) if len(lr.memory) >= a.batch_size else float("nan")
+    before, lr.done = lr.done, lr.done + B
+    if lr.done // a.target_update > before // a.target_update:
+        lr.target.load_state_dict(model.net.state_dict())
+    o = r["outcome"]
+    lr.last = {"episodes": lr.done, "frames": lr.frames, "epsilon": float(eps[0]),
+               "success": float((o == SUCCESS).float().mean()), "collision": float((o == COLLISION).float().mean()),
+               "loss": loss, "stored": stored}
+    if val_episodes is not None and a.val_every and lr.done // a.val_every > before // a.val_every:
         model.net.eval()
-        r = run_round(model, world, sampler(B), lookahead_act(model, world, eps, gen))
-        stored = store(memory, r, round_targets(r, target, g), bool(a.store_timeouts))
-        frames += int(r["active"].sum())
-        credit += a.train_batches * B  # gradient steps owed: train_batches per finished episode
-        steps = int(credit)
-        credit -= steps
-        model.net.train()
-        loss = fit(model.net, memory, opt, steps) if len(memory) >= a.batch_size else float("nan")
-        before, done = done, done + B
-        if done // a.target_update > before // a.target_update:
-            target.load_state_dict(model.net.state_dict())
-        o = r["outcome"]
-        last = {"episodes": done, "frames": frames, "epsilon": float(eps[0]), "success": float((o == SUCCESS).float().mean()),
-                "collision": float((o == COLLISION).float().mean()), "loss": loss, "stored": stored,
-                "wall_s": time.perf_counter() - t0}
-        if val_episodes is not None and a.val_every and done // a.val_every > before // a.val_every:
-            model.net.eval()
-            val = validate(model, world, val_episodes)
-            last.update({f"val_{k}": v for k, v in val.items()})
-            best.offer(val, done)
-        log(last)
+        val = validate(model, world, val_episodes)
+        lr.last.update({f"val_{k}": v for k, v in val.items()})
+        lr.best.offer(val, lr.done)
+
+
+def v_learning(cfg, model: ValueModel, world, sampler, memory: ReplayBuffer, log, val_episodes=None,
+               resume: dict | None = None, snapshot=None) -> dict:
+    """Phase 2: epsilon-greedy deep V-learning (rounds of ``B`` episodes) until ``episodes`` or ``max_minutes``
+    (counted over every resumed part). ``snapshot(state)``: called with :meth:`Learner.state_dict` when the
+    phase starts, every :data:`SNAPSHOT_S` s and on Ctrl-C; ``resume``: such a state to continue from."""
+    a = cfg.algo
+    best = Best(model, world, val_episodes if a.keep_best else None, log, score=resume is None)
+    lr = Learner(cfg, model, sampler, memory, best)
+    if resume is not None:
+        lr.load_state_dict(resume)
+    t0 = last_snap = time.perf_counter()
+    save = (lambda: snapshot(lr.state_dict())) if snapshot is not None else (lambda: None)
+    if resume is None:
+        save()  # from here on a stopped run resumes without repeating the imitation
+    try:
+        while lr.done < a.episodes and not (a.max_minutes and lr.spent + time.perf_counter() - t0 > 60 * a.max_minutes):
+            rl_round(lr, world, val_episodes, log)
+            lr.last["wall_s"] = lr.spent + time.perf_counter() - t0
+            log(lr.last)
+            if time.perf_counter() - last_snap > SNAPSHOT_S:
+                lr.spent, t0, last_snap = lr.spent + time.perf_counter() - t0, time.perf_counter(), time.perf_counter()
+                save()
+    except KeyboardInterrupt:
+        lr.spent += time.perf_counter() - t0
+        save()
+        raise
+    lr.spent += time.perf_counter() - t0
+    save()  # a finished run can be extended too (resume=true with a larger algo.episodes / max_minutes)
     model.net.eval()
     best.restore()
-    return {**last, "selected_episode": best.episode}
+    return {**lr.last, "selected_episode": best.episode}
 
 
 class Best:
@@ -240,10 +294,10 @@ class Best:
     the imitation network included; restored at the end. Selection is on CrowdNav's 100 validation cases,
     never the test cases. ``episodes=None``: inactive, the final network is kept."""
 
-    def __init__(self, model: ValueModel, world, episodes, log):
+    def __init__(self, model: ValueModel, world, episodes, log, score: bool = True):
         self.model, self.active = model, episodes is not None
         self.state, self.key, self.episode = None, None, None
-        if self.active:
+        if self.active and score:  # (a resumed run restores what was scored instead)
             val = validate(model, world, episodes)
             log({"episodes": 0, **{f"val_{k}": v for k, v in val.items()}})
             self.offer(val, 0)
@@ -254,14 +308,22 @@ class Best:
             self.key, self.episode = key, episode
             self.state = copy.deepcopy(self.model.net.state_dict())
 
+    def state_dict(self) -> dict:
+        return {"state": self.state, "key": self.key, "episode": self.episode}
+
+    def load_state_dict(self, s: dict) -> None:
+        self.state, self.episode = s["state"], s["episode"]
+        self.key = tuple(s["key"]) if s["key"] is not None else None
+
     def restore(self) -> None:
         if self.state is not None:
             self.model.net.load_state_dict(self.state)
 
 
-def train_value(cfg, out_dir, log=print) -> dict:
+def train_value(cfg, out_dir, log=print, resume: bool = False) -> dict:
     """Imitation then deep V-learning per ``cfg`` (``algo=value``, ``env=crowdnav``); writes
-    ``out_dir/checkpoint.pt`` (config + the value network as ``actor``) and ``out_dir/train_log.jsonl``; returns the stats."""
+    ``out_dir/checkpoint.pt`` (config + the value network as ``actor``) and ``out_dir/train_log.jsonl``; returns the stats.
+    ``resume``: continue deep V-learning from ``out_dir/resume.pt`` (the imitation is never repeated)."""
     import json
     from pathlib import Path
 
@@ -288,18 +350,47 @@ def train_value(cfg, out_dir, log=print) -> dict:
             f.write(json.dumps(d) + "\n")
         log(d)
 
-    def save(name: str, wall: float, frames: int, episodes: int) -> None:
+    def save(name: str, wall: float, frames: int, episodes: int, extra: dict | None = None) -> None:
         # "actor": what acts is the value network (the checkpoint loader's required field holds it)
         save_checkpoint(out_dir / name, {"config": OmegaConf.to_container(cfg, resolve=True),
                                          "actor": model.net.state_dict(), "wall_time_s": wall, "frames": frames,
-                                         "episodes": episodes})
+                                         "episodes": episodes, **(extra or {})})
 
-    t0 = time.perf_counter()
-    il = imitation(cfg, model, world, sampler, memory, record) if a.il_episodes else {}
-    save("checkpoint_il.pt", time.perf_counter() - t0, il.get("il_frames", 0), 0)  # imitation alone
-    rl = v_learning(cfg, model, world, sampler, memory, record, scenario.test_list("val"))
-    wall = time.perf_counter() - t0
+    def snapshot(state: dict) -> None:
+        save(RESUME_FILE, spent + time.perf_counter() - t0, 0, state["done"], {"learner": state, "il": il})
+
+    t0, spent, state = time.perf_counter(), 0.0, None
+    if resume:
+        state = load_resume(out_dir / RESUME_FILE, cfg)
+        il, spent = state["il"], float(state["wall_time_s"])
+        record({"resumed": True, "episodes": state["learner"]["done"], "wall_time_s": spent})
+    else:
+        il = imitation(cfg, model, world, sampler, memory, record) if a.il_episodes else {}
+        save("checkpoint_il.pt", time.perf_counter() - t0, il.get("il_frames", 0), 0)  # imitation alone
+    rl = v_learning(cfg, model, world, sampler, memory, record, scenario.test_list("val"),
+                    resume=state and state["learner"], snapshot=snapshot)
+    wall = spent + time.perf_counter() - t0
     stats = {"il": il, "rl": rl, "wall_time_s": wall, "privileged": model.lookahead == "query"}
     save("checkpoint.pt", wall, il.get("il_frames", 0) + rl.get("frames", 0), rl.get("episodes", 0))
     record({"done": True, "wall_time_s": wall})
     return stats
+
+
+def load_resume(path, cfg) -> dict:
+    """The snapshot of a stopped run; ValueError (one line) if there is none or it is another recipe's."""
+    from omegaconf import OmegaConf
+
+    from crowdbench.algos.checkpoint import load_checkpoint
+
+    if not path.is_file():
+        raise ValueError(f"resume=true: {path} not found (a run stopped before deep V-learning began has nothing "
+                         "to resume: start it again without resume=true)")
+    state = load_checkpoint(path)
+    now = OmegaConf.to_container(cfg, resolve=True)
+    budget = ("episodes", "max_minutes")  # a resume may extend the budget, nothing else
+    strip = lambda c: {**c, "algo": {k: v for k, v in (c.get("algo") or {}).items() if k not in budget}}
+    old, now = strip(state["config"]), strip(now)
+    differ = sorted(k for k in ("algo", "env", "encoder", "seed") if old.get(k) != now.get(k))
+    if differ:
+        raise ValueError(f"resume=true: {path} was written with other {', '.join(differ)} settings than these")
+    return state
