@@ -49,7 +49,7 @@ A crowdbench run with CrowdNav's RL settings (100 batches per episode, epsilon 0
 timeouts stored; the budget recipe's runs under runs/value use 20 batches), started beside the above,
 without validation or the final test (its train_log.jsonl is RUN):
 
-    OMP_NUM_THREADS=1 /work/venv/bin/python -c "from pathlib import Path; from crowdbench.cli import compose
+    OMP_NUM_THREADS=1 python -c "from pathlib import Path; from crowdbench.cli import compose
     from crowdbench.algos.value_train import train_value
     train_value(compose(['env=crowdnav', 'algo=value', 'cpus=1', 'algo.il_episodes=320',
         'algo.il_optimizer=adam', 'algo.il_lr=1e-3', 'algo.il_steps=3000', 'algo.episodes=160',
