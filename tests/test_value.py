@@ -393,7 +393,8 @@ def test_an_existing_encoder_as_the_value_network(name):
 
             robot = torch.cat((torch.zeros(2), rot(rv[b]), (goal[b] - rp[b]).norm().reshape(1), torch.zeros(1)))
             humans = torch.cat((rot(hp[b] - rp[b]), rot(hv[b])), -1)
-            ref = net.head(net.encoder(robot[None], humans[None], mask[:1])[1])
+            self_state = torch.cat((robot[4:5], torch.tensor([1.0, 0.0, 0.3]), robot[2:4]))  # dg, v_pref, theta, r, v
+            ref = net.head(torch.cat((self_state, net.encoder(robot[None], humans[None], mask[:1])[1][0]))[None])
             assert torch.allclose(v[b], ref[0], atol=1e-5)
         assert torch.allclose(net(x[:, [4, 2, 0, 3, 1]], mask), v, atol=1e-5)
 

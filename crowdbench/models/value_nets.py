@@ -135,7 +135,10 @@ class SARLValue(nn.Module):
 class EncoderValue(nn.Module):
     """Any registered encoder (``crowdbench/models``: gatedgcn, gcn, rgl, gat, dsrnn, ...) as V: the joint state
     read back as the encoder's observation in the frame of the joint state (robot at the origin with velocity
-    ``(vx, vy)``, goal at ``(dg, 0)``; the humans' positions and velocities), then ``MLP(D, 1)`` on ``robot_h``."""
+    ``(vx, vy)``, goal at ``(dg, 0)``; the humans' positions and velocities), then SARL's value MLP
+    (150, 100, 100, 1) on the robot's 6 self-state numbers and the encoder's ``robot_h``. The self-state goes to
+    the MLP directly, as in SARL: the lookahead ranks candidates whose values differ by ~1%, mostly through
+    ``dg`` and the velocity, which a 32-wide embedding alone carried too coarsely (measured in docs/value.md)."""
 
     def __init__(self, encoder_cfg: dict):
         super().__init__()
@@ -143,13 +146,13 @@ class EncoderValue(nn.Module):
 
         cfg = dict(encoder_cfg)
         self.encoder = make_encoder(cfg.pop("name"), **cfg)
-        self.head = mlp(self.encoder.out_dim, (self.encoder.out_dim, 1))
+        self.head = mlp(SELF_DIM + self.encoder.out_dim, (150, 100, 100, 1))
 
     def forward(self, state, mask):
         z = state.new_zeros(state.shape[0], 1)
         robot = torch.cat((z, z, state[:, 0, 4:6], state[:, 0, 0:1], z), -1)
         humans = state[..., 6:10] * mask.unsqueeze(-1)
-        return self.head(self.encoder(robot, humans, mask)[1])
+        return self.head(torch.cat((state[:, 0, :SELF_DIM], self.encoder(robot, humans, mask)[1]), -1))
 
 
 def build_value_net(name: str, encoder_cfg: dict | None = None) -> nn.Module:
