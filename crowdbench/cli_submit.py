@@ -170,9 +170,14 @@ def training_overrides(cfg: dict) -> list[str]:
 
     base = OmegaConf.to_container(compose([f"algo={cfg['algo']['name']}", f"encoder={cfg['encoder']['name']}"]))
     out = [f"algo={cfg['algo']['name']}", f"encoder={cfg['encoder']['name']}"]
+    # a wall-time cap or a saved buffer is how a run was kept, not what it learned, except algo=value's
+    # max_minutes: the length of its deep V-learning phase (experiment=value_crowdnav)
+    skip = {("train", "max_minutes"), ("train", "save_buffer"), ("algo", "save_buffer")}
+    if cfg["algo"]["name"] != "value":
+        skip.add(("algo", "max_minutes"))
     for group in ("algo", "encoder", "env", "train"):
         for key, value in cfg[group].items():
-            if base[group].get(key) != value and key not in ("max_minutes", "save_buffer"):
+            if base[group].get(key) != value and (group, key) not in skip:
                 out.append(f"{group}.{key}={value}")
     return [*out, f"seed={cfg['seed']}"]
 
