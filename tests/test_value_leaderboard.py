@@ -115,3 +115,14 @@ def test_a_row_above_the_privileged_oracle_is_reported():
     assert above_the_oracle(board) == ["crowdnav-circle5: SARL (PRIVILEGED) 0.985 > the oracle's 0.874"]
     board["crowdnav-circle5"][0]["scenes"]["circle_n5"]["success_rate"]["mean"] = 1.0
     assert above_the_oracle(board) == []
+
+
+def test_a_value_runs_recorded_recipe_keeps_its_rl_budget():
+    """`crowdbench submit` records the overrides that made a run: algo=value's max_minutes is the length of
+    its deep V-learning (part of the recipe); a TD3 run's wall-time cap is not."""
+    from crowdbench.cli_submit import training_overrides
+
+    value = OmegaConf.to_container(compose(["experiment=value_crowdnav"]), resolve=True)
+    assert "algo.max_minutes=7" in training_overrides(value)
+    td3 = OmegaConf.to_container(compose(["train.max_minutes=5"]), resolve=True)
+    assert not any("max_minutes" in o for o in training_overrides(td3))
