@@ -50,7 +50,9 @@ class Limits:
     scratch_mb: int = 256
     sandbox: str = "auto"
     budget_factor: float = 20.0  # x the reference policy's wall time on the track (crowdbench/leaderboard/budget.py)
-    budget_floor_s: float = 60.0
+    # a floor, not only the factor: ORCA ends most CrowdNav circle-5 episodes early (57% collide), 7.8 s for
+    # the 500 cases, while a value-lookahead entry scores 81 candidates per step (~100-800 s by load)
+    budget_floor_s: float = 900.0
     budgets: tuple = ()  # ((track, seconds), ...), measured by the harness at the start of a run
 
 
