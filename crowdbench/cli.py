@@ -70,6 +70,12 @@ def _hydra_message(err: Exception, overrides: list[str]) -> str:
         return f"unknown {group} {choice!r}; valid choices: {', '.join(opts)}"
     bad = re.search(r"Could not override '([^']+)'", text) or re.search(r"Key '([^']+)' is not in struct", text)
     if not bad:
+        unparsed = _ungrammatical(overrides)
+        if unparsed:  # e.g. a non-ASCII path: Hydra's grammar takes it quoted
+            key, _, value = unparsed.partition("=")
+            quoted = value.replace("\\", "\\\\").replace("'", "\\'")
+            return (f"bad override {unparsed!r}: not valid in Hydra's override grammar; quote the value: "
+                    f"\"{key}='{quoted}'\"")
         return f"bad override: {text}"
     key = bad.group(1)
     parent = key.rsplit(".", 1)[0] if "." in key else ""
@@ -82,6 +88,20 @@ def _hydra_message(err: Exception, overrides: list[str]) -> str:
     except (HydraException, AttributeError):
         valid = "?"
     return f"unknown config key {key!r}; valid keys{' under ' + repr(parent) if parent else ''}: {valid}"
+
+
+def _ungrammatical(overrides: list[str]) -> str | None:
+    """The first override Hydra's grammar cannot parse, if any."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+
+    parser = OverridesParser.create()
+    for o in normalise(overrides):
+        try:
+            parser.parse_overrides([o])
+        except HydraException:
+            return o
+    return None
 
 
 def cmd_eval(overrides: list[str]) -> int:

@@ -19,6 +19,7 @@ from crowdbench.schema_fields import bounded
 
 FRAMES = ("rotate", "translate", "world")
 SEED_BOUNDS = {"ge": 0, "lt": 2**63}
+MAX_ENV_BATCH = 65536  # 256x the largest recipe's (experiment=ppo)
 
 
 # ------------------------------------------------------------------------------------------------ env
@@ -27,7 +28,8 @@ class SimEnvConfig:
     """The simulator settings every env shares (crowdbench/envs/core.py ``SimConfig``)."""
 
     name: str = bounded("replay", choices=("replay",))
-    batch: int = bounded(16, ge=1)  # parallel environments for training
+    # parallel environments for training; bounded so that a typo (1e8) is an error, not GBs of tensors
+    batch: int = bounded(16, ge=1, le=MAX_ENV_BATCH)
     dt: float = bounded(0.25, gt=0)
     v_max: float = bounded(1.0, gt=0)
     robot_radius: float = bounded(0.2, gt=0)

@@ -291,12 +291,15 @@ def evaluate(policy: Policy, scenes=PAPER_SCENES, episodes: int | None = None, o
 
 def write_results(out_dir: Path, results: dict, rows: list[dict] | None = None) -> None:
     """``results.json`` and, with ``rows``, ``episodes.jsonl`` (one episode per line) in ``out_dir``."""
+    from crowdbench.outputs import write_text_atomic
+
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "results.json").write_text(json.dumps(results, indent=1) + "\n")
+    # results.json last, each file whole or not at all: a write that fails (a full disk) leaves no
+    # results.json, which would make a retry refuse the directory
     if rows is not None:
-        with open(out_dir / "episodes.jsonl", "w") as f:
-            f.writelines(json.dumps(r) + "\n" for r in rows)
+        write_text_atomic(out_dir / "episodes.jsonl", "".join(json.dumps(r) + "\n" for r in rows))
+    write_text_atomic(out_dir / "results.json", json.dumps(results, indent=1) + "\n")
 
 
 SOCIAL_COLS = [("spl", "SPL"), ("stl", "STL"), ("personal_space_compliance_50cm", "pers. space 0.5 m"),

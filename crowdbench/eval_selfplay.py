@@ -18,7 +18,6 @@ Metrics (docs/selfplay.md):
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import asdict, replace
 from pathlib import Path
@@ -30,7 +29,7 @@ from crowdbench.envs.factory import selfplay_world
 from crowdbench.envs.policy import Policy
 from crowdbench.envs.selfplay import SelfPlayConfig, episode_set
 from crowdbench.envs.torchrl_env import CrowdEnv
-from crowdbench.eval import drive, mean_ci, rate_ci
+from crowdbench.eval import drive, mean_ci, rate_ci, write_results
 
 PROTOCOL = "selfplay-v1"
 
@@ -104,9 +103,7 @@ def evaluate_selfplay(policy: Policy, cfg: SelfPlayConfig, scenarios=("circle", 
             results["settings"][f"{scenario}_n{n}"] = metrics(tr, c)
             results["sim_config"] = {k: v for k, v in asdict(c).items() if k not in ("scenario", "n_agents")}
     if out_dir is not None:
-        out_dir = Path(out_dir)
-        out_dir.mkdir(parents=True, exist_ok=True)
-        (out_dir / "results.json").write_text(json.dumps(results, indent=1) + "\n")
+        write_results(Path(out_dir), results)  # atomic: a failed write leaves no half results.json
     return results
 
 

@@ -149,6 +149,9 @@ def atomic_path(path: Path) -> Iterator[Path]:
         tmp = Path(f.name)
     try:
         yield tmp
+        # NamedTemporaryFile makes it 0600: give it the mode any other file written here gets (the umask's),
+        # so that a checkpoint is as readable as results.json for another user of a shared file system
+        os.chmod(tmp, 0o666 & ~current_umask())
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(OSError):
@@ -161,12 +164,27 @@ def write_text_atomic(path: Path, text: str) -> None:
         tmp.write_text(text)
 
 
+def current_umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def save_torch_atomic(path: Path, state: dict) -> None:
-    """``torch.save`` through a unique temporary file (the format :func:`load_checkpoint` reads)."""
+    """``torch.save`` through a unique temporary file (the format :func:`load_checkpoint` reads).
+
+    Serialised in memory first: torch's own writer reports a full disk as an opaque ``RuntimeError``
+    (``enforce fail at inline_container.cc``), a plain write as ``OSError`` with its errno and path."""
+    import io
+
     import torch
 
-    with atomic_path(path) as tmp:
-        torch.save(state, tmp)
+    buf = io.BytesIO()
+    torch.save(state, buf)
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        f.write(buf.getbuffer())
+        f.flush()
+        os.fsync(f.fileno())
 
 
 def replace_dir(src: Path, dst: Path) -> None:
@@ -174,3 +192,31 @@ def replace_dir(src: Path, dst: Path) -> None:
     if dst.exists():
         shutil.rmtree(dst)
     os.replace(src, dst)
+
+
+def pid_dir(parent: Path, what: str) -> Path:
+    """A new directory ``parent/<what>-<pid>-*`` for this process's unfinished work; those left by processes
+    that are gone (killed before they could clean up) are removed first."""
+    parent.mkdir(parents=True, exist_ok=True)
+    reap_dead(parent, what)
+    d = Path(tempfile.mkdtemp(prefix=f"{what}-{os.getpid()}-", dir=parent))
+    os.chmod(d, 0o777 & ~current_umask())  # (mkdtemp's is 0700) it may be renamed into place as it is
+    return d
+
+
+def reap_dead(parent: Path, what: str) -> None:
+    """Remove ``parent/<what>-<pid>-*`` directories whose process no longer exists."""
+    for d in Path(parent).glob(f"{what}-*-*"):
+        pid = d.name[len(what) + 1:].split("-", 1)[0]
+        if pid.isdigit() and not pid_alive(int(pid)):
+            shutil.rmtree(d, ignore_errors=True)
+
+
+def pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True

@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shlex
 import sys
 import time
 import traceback
@@ -44,15 +45,22 @@ def task(cfg: DictConfig) -> dict:
     from hydra.core.hydra_config import HydraConfig
 
     from crowdbench.cli import UsageError, run_one
+    from crowdbench.sweep_check import finished
 
     hc = HydraConfig.get()
     out = Path(hc.runtime.output_dir)
-    overrides = list(hc.overrides.task)
+    kept = finished(out)
+    if kept is not None:  # a run of this sweep that finished before it was interrupted (crowdbench/sweep_check.py)
+        print(f"crowdbench: run {kept['job']} finished before: kept ({out})", file=sys.stderr)
+        return kept
+    # resume=true continues the sweep: not part of what a run is (its row in the summary, its submission)
+    overrides = [o for o in hc.overrides.task if not o.startswith("resume=")]
     status = {"job": int(hc.job.num), "overrides": overrides, "dir": str(out)}
     start = time.time()
     try:
         OmegaConf.set_struct(cfg, True)
         cfg.out = str(out)
+        cfg.resume = bool(cfg.resume) and (out / "checkpoint.pt").exists()  # else this job starts afresh
         results = run_one(cfg, overrides)
         status |= {"status": "ok", **headline(results)}
     except (Exception, SystemExit) as e:  # noqa: BLE001 - any failure is this run's, reported by name
@@ -148,7 +156,8 @@ def multirun(overrides: list[str]) -> int:
     ``outputs/sweep-<time>``."""
     import hydra
 
-    from crowdbench.cli import CONFIG_DIR, normalise
+    from crowdbench.cli import CONFIG_DIR, Interrupted, UsageError, normalise
+    from crowdbench.sweep_check import check_sweep
 
     overrides = normalise(overrides)
     sweep_dir = next((o.split("=", 1)[1] for o in overrides if o.startswith("hydra.sweep.dir=")), None)
@@ -159,19 +168,24 @@ def multirun(overrides: list[str]) -> int:
         sweep_dir = f"outputs/sweep-{time.strftime('%Y%m%d-%H%M%S')}"
     # absolute: a run on a Ray node resolves a relative directory against its worker's directory
     sweep_dir = str(Path(sweep_dir).absolute())
-    overrides = [o for o in overrides if not o.startswith(("out=", "hydra.sweep.dir="))]
+    given = [o for o in overrides if not o.startswith(("out=", "hydra.sweep.dir="))]
     quoted = sweep_dir.replace("\\", "\\\\").replace("'", "\\'")  # Hydra's override grammar: any path
-    overrides.append(f"hydra.sweep.dir='{quoted}'")
-    if (Path(sweep_dir) / SUMMARY).exists():
-        print(f"crowdbench: error: {sweep_dir} already holds a finished sweep ({SUMMARY}); choose another out=",
-              file=sys.stderr)
-        return 2
+    overrides = [*given, f"hydra.sweep.dir='{quoted}'"]
+    resume = any(o.split("=", 1)[0] == "resume" and o.split("=", 1)[1].lower() == "true" for o in given)
+    if (Path(sweep_dir) / SUMMARY).exists() and not resume:
+        raise UsageError(f"{sweep_dir} already holds a finished sweep ({SUMMARY}); choose another out=, or pass "
+                         "resume=true to rerun its failed runs (finished runs are kept)")
+    check_sweep(overrides, Path(sweep_dir), resume)  # before Hydra writes anything (crowdbench/sweep_check.py)
     app = hydra.main(config_path=str(CONFIG_DIR), config_name="config", version_base="1.3")(task)
     argv, sys.argv = sys.argv, ["crowdbench run", "--multirun", *overrides]
     try:
         app()
     except SystemExit as e:  # Hydra exits on a bad override (composition), after printing the error
         return int(e.code or 0) if not isinstance(e.code, str) else 2
+    except KeyboardInterrupt:  # the runs finished so far are kept: say how to continue the whole sweep
+        again = shlex.join(["crowdbench", "run", "-m", *[o for o in given if not o.startswith("resume=")],
+                            f"out={sweep_dir}", "resume=true"])
+        raise Interrupted(f"sweep interrupted; finished runs are kept; continue it with: {again}") from None
     finally:
         sys.argv = argv
     summary_file = Path(sweep_dir) / SUMMARY

@@ -128,7 +128,7 @@ FINDINGS = [
     (["eval", "orca.safety_margin=abc"], "orca.safety_margin: must be a number >= 0 (got 'abc')"),
     (["run", "encoder.dim=0"], "encoder.dim: must be >= 1 (got 0)"),
     (["run", "train.frames_per_batch=0"], "train.frames_per_batch: must be >= 1 (got 0)"),
-    (["run", "env.batch=0"], "env.batch: must be >= 1 (got 0)"),
+    (["run", "env.batch=0"], "env.batch: must be in [1, 65536] (got 0)"),
     (["run", "algo.lr_actor=abc"], "algo.lr_actor: must be a number > 0 (got 'abc')"),
     (["eval", "eval.scenes=[students001]"], "eval.scenes: students001 has no protocol episode list"),
     (["run", "algo.gamma=2"], "algo.gamma: must be in (0, 1] (got 2)"),

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import torch
@@ -132,11 +131,11 @@ def checkpoint_format(state: dict, path: Path) -> int:
 
 
 def save_checkpoint(path: Path, state: dict) -> None:
-    """Write to a temporary file, then rename: a kill mid-write never corrupts the last checkpoint."""
-    path = Path(path)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    torch.save({**state, "format": FORMAT}, tmp)
-    os.replace(tmp, path)
+    """Write to a temporary file, then rename: a kill mid-write never corrupts the last checkpoint; a
+    full disk is an ``OSError`` naming the file (crowdbench/outputs.py)."""
+    from crowdbench.outputs import save_torch_atomic
+
+    save_torch_atomic(Path(path), {**state, "format": FORMAT})
 
 
 def load_checkpoint(path: Path) -> dict:

@@ -291,8 +291,8 @@ def _train(cfg: DictConfig, out_dir: Path, resume: bool, progress: bool, probe) 
                 break
         save(wall)
     except OSError as e:  # e.g. the logs' directory made read-only: one line, the last checkpoint stays
-        raise CheckpointError(f"cannot write {e.filename or out_dir}: {e.strerror or e}; the last checkpoint "
-                              f"({ckpt_path}) is kept") from None
+        kept = f"; the last checkpoint ({ckpt_path}) is kept" if ckpt_path.exists() else "; no checkpoint was written"
+        raise CheckpointError(f"cannot write {e.filename or out_dir}: {e.strerror or e}{kept}") from None
     finally:
         stop.restore()
         bar.close()

@@ -70,6 +70,15 @@ def check_seed(seed) -> int:
     return int(seed)
 
 
+def int_option(options: dict, key: str, lo: int, hi: int) -> int:
+    """PettingZoo ``reset`` option ``key`` as an int in ``[lo, hi)`` (numpy integers accepted; a float,
+    even integral, is refused rather than truncated); one-line error naming it otherwise."""
+    v = options[key]
+    if isinstance(v, bool) or not isinstance(v, numbers.Integral) or not lo <= int(v) < hi:
+        raise ValueError(f"options[{key!r}] must be an integer in [{lo}, {hi}), got {v!r}")
+    return int(v)
+
+
 @dataclass
 class StepInfo:
     reward: torch.Tensor  # [B, A]

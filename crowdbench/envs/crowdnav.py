@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from crowdbench.envs.core import SimConfig, check_seed
+from crowdbench.envs.core import SimConfig, check_seed, int_option
 from crowdbench.envs.crowdnav_cases import CROWDNAV, case_list, crowdnav_case
 from crowdbench.envs.humans.reactive import CROWDS, OrcaParams, reactive_crowd
 
@@ -130,7 +130,7 @@ class CrowdNavScenario:
 
     def with_options(self, episode: dict, options: dict) -> dict[str, torch.Tensor]:
         """PettingZoo ``reset`` option ``case``: CrowdNav's test case of that number."""
-        return self.cases([int(options["case"])]) if "case" in options else episode
+        return self.cases([int_option(options, "case", 0, CROWDNAV.test_size)]) if "case" in options else episode
 
     def sampler(self, seed: int) -> CaseSampler:
         return CaseSampler(self, seed)

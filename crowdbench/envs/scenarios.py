@@ -15,11 +15,12 @@ scenario, so training and evaluation place episodes with one piece of code.
 from __future__ import annotations
 
 import math
+import numbers
 
 import torch
 
 from crowdbench.data.scenes import Scene, load_scene
-from crowdbench.envs.core import START_CLEARANCE, SimConfig, free_start
+from crowdbench.envs.core import START_CLEARANCE, SimConfig, free_start, int_option
 from crowdbench.envs.protocol import TrainSampler
 
 
@@ -65,11 +66,12 @@ class ReplayScenario:
     def with_options(self, episode: dict, options: dict) -> dict[str, torch.Tensor]:
         """One drawn episode with PettingZoo ``reset`` options ``t0`` (int) and ``angle`` (rad) applied."""
         t0, angle = episode["t0"], episode["angle"]
-        if "t0" in options:
-            t0 = torch.tensor([int(options["t0"])], dtype=torch.long)
+        if "t0" in options:  # (its range against the scene: World.reset)
+            t0 = torch.tensor([int_option(options, "t0", 0, 2**63)], dtype=torch.long)
         if "angle" in options:
-            if not math.isfinite(float(options["angle"])):
-                raise ValueError(f"options['angle'] must be finite, got {options['angle']!r}")
+            a = options["angle"]
+            if isinstance(a, bool) or not isinstance(a, numbers.Real) or not math.isfinite(float(a)):
+                raise ValueError(f"options['angle'] must be a finite number, got {a!r}")
             angle = torch.tensor([float(options["angle"])], dtype=torch.float64)
         return self.episodes(t0, angle)
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass, replace
 import torch
 
 from crowdbench.data.scenes import Scene
-from crowdbench.envs.core import START_CLEARANCE, SimConfig, check_seed, free_start
+from crowdbench.envs.core import START_CLEARANCE, SimConfig, check_seed, free_start, int_option
 from crowdbench.envs.world import DONE_AGENTS
 
 SCENARIOS = ("circle", "square", "mixed")
@@ -172,11 +172,18 @@ class SelfPlayScenario:
         episode = dict(episode)
         for key in ("start", "goal"):
             if key in options:
-                episode[key] = torch.as_tensor(options[key], dtype=torch.float32).view(1, self.A, 2)
-                if not torch.isfinite(episode[key]).all():
+                try:
+                    value = torch.as_tensor(options[key], dtype=torch.float32)
+                except (TypeError, ValueError, RuntimeError):
+                    value = None
+                if value is None or value.shape != (self.A, 2):
+                    raise ValueError(f"options[{key!r}] must be {self.A} points [x, y] (one per agent), "
+                                     f"got {options[key]!r}")
+                if not torch.isfinite(value).all():
                     raise ValueError(f"options[{key!r}] must be finite")
+                episode[key] = value.view(1, self.A, 2)
         if "t0" in options:
-            episode["t0"] = torch.tensor([int(options["t0"])], dtype=torch.long)
+            episode["t0"] = torch.tensor([int_option(options, "t0", 0, 2**63)], dtype=torch.long)
         return episode
 
     def sampler(self, seed: int) -> EpisodeSampler:

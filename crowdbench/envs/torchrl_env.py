@@ -109,7 +109,13 @@ class CrowdEnv(EnvBase):
         return self._last.clone()
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        info = self.world.step(tensordict[GROUP, "action"])
+        action = tensordict[GROUP, "action"]
+        want = (*self.batch_size, self.world.A, 2)
+        if tuple(action.shape) != want:  # a third component would be ignored, one too few an IndexError
+            raise ValueError(f"action must have shape {list(want)} ([vx, vy] per agent), got {list(action.shape)}")
+        if action.dtype != torch.float32:  # float64 would promote the world's state (and break the spec) for good
+            action = action.to(torch.float32)
+        info = self.world.step(action)
         self.last_info = info
         out = self._output(info.clearance, info.extra.get("agent_clearance"))
         out[GROUP].set("reward", info.reward.unsqueeze(-1))

@@ -7,6 +7,7 @@ A submission is confined to its directory: its name, files and encoder module (:
 
 from __future__ import annotations
 
+import os
 import re
 import shutil
 import unicodedata
@@ -22,6 +23,7 @@ from crowdbench.envs.lookahead import MODELS as LOOKAHEAD_MODELS
 from crowdbench.envs.lookahead import PRIVILEGED_MODELS
 from crowdbench.leaderboard.text import bad_char, one_line, short
 from crowdbench.leaderboard.tracks import TRACK_ORDER, trained_track
+from crowdbench.outputs import pid_dir
 
 PACKAGE_DIR = Path(__file__).resolve().parents[1]
 REPO_DIR = PACKAGE_DIR.parent
@@ -402,13 +404,24 @@ def make_submission(run_dir: Path, name: str, entry: str, authors: list[str], ov
     validate_schema(sub_dir / "submission.yaml", data)
     if sub_dir.exists() or sub_dir.is_symlink():
         raise SubmissionError(sub_dir, None, "already exists; remove it first to replace the submission")
-    sub_dir.mkdir(parents=True)
+    # built beside submissions/ and renamed into it whole: a kill leaves no half submission there
+    build = pid_dir(Path(root) / ".building", "submit")
     try:
         keep = ("config", "actor", "frames", "updates", "wall_time_s")
-        save_checkpoint(sub_dir / "checkpoint.pt", {k: state[k] for k in keep if k in state})
-        (sub_dir / "submission.yaml").write_text(yaml.safe_dump(data, sort_keys=False, width=120))
+        save_checkpoint(build / "checkpoint.pt", {k: state[k] for k in keep if k in state})
+        (build / "submission.yaml").write_text(yaml.safe_dump(data, sort_keys=False, width=120))
+        sub_dir.parent.mkdir(parents=True, exist_ok=True)
+        os.rename(build, sub_dir)  # (refused if another submit made sub_dir meanwhile)
+    except OSError as e:
+        shutil.rmtree(build, ignore_errors=True)
+        raise SubmissionError(sub_dir, None, f"cannot write it: {e.strerror or e} ({e.filename or build})") from None
+    except BaseException:
+        shutil.rmtree(build, ignore_errors=True)
+        raise
+    try:
         read_submission(sub_dir)
     except BaseException:  # a submission the harness would refuse is not left behind
         shutil.rmtree(sub_dir, ignore_errors=True)
         raise
     return sub_dir
+

@@ -23,6 +23,8 @@ import os
 import tempfile
 from pathlib import Path
 
+from crowdbench.outputs import current_umask
+
 MAX_RESULTS_BYTES = 64 * 1024 ** 2
 
 
@@ -43,17 +45,11 @@ def write_atomic(path: Path, text: str) -> None:
             f.write(text)
             f.flush()
             os.fsync(f.fileno())
-        os.chmod(tmp, 0o666 & ~_umask())
+        os.chmod(tmp, 0o666 & ~current_umask())
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
 
 
 def _digest(data: bytes) -> str:

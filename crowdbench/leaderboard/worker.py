@@ -41,9 +41,11 @@ from crowdbench.leaderboard.sandbox import (
     needed_paths,
     sandbox_name,
 )
+from crowdbench.outputs import reap_dead
 
 FRAMES = ("rotate", "translate", "world")
 MAX_LINE = 240
+SCRATCH_PREFIX = "crowdbench-worker"
 
 
 class WorkerError(RuntimeError):
@@ -78,6 +80,13 @@ class _Tail:
         return lines[-1] if lines else ""
 
 
+def unconfined_scratch() -> tempfile.TemporaryDirectory:
+    """An unconfined worker's scratch, ``$TMPDIR/crowdbench-worker-<harness pid>-*``: the pid lets a later
+    harness remove those of a harness that was killed before it could (``outputs.reap_dead``)."""
+    reap_dead(Path(tempfile.gettempdir()), SCRATCH_PREFIX)
+    return tempfile.TemporaryDirectory(prefix=f"{SCRATCH_PREFIX}-{os.getpid()}-")
+
+
 class WorkerPolicy(Policy):
     """A submission's policy behind a worker process; use as a context manager (the worker is killed on exit)."""
 
@@ -86,7 +95,7 @@ class WorkerPolicy(Policy):
         self.budget: tuple[float, str] | None = None  # (time.monotonic() deadline, what it is), set per track
         # confined: the scratch is a tmpfs inside the worker's own mount namespace, never a host directory
         confined = sandbox_name(limits) == "bubblewrap"
-        self._scratch = None if confined else tempfile.TemporaryDirectory(prefix="crowdbench-worker-")
+        self._scratch = None if confined else unconfined_scratch()
         scratch = Path(SCRATCH if confined else self._scratch.name)
         env = environment(scratch)
         self.proc = subprocess.Popen(command(limits, needed_paths(Path(sub_dir).resolve(), env)),

@@ -31,6 +31,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from crowdbench.outputs import check_writable_file
+from crowdbench.viz.records import load_rows
 
 ROBOT = "#1f5fd0"
 GOAL = "#d62728"
@@ -47,40 +48,6 @@ class _Parser(argparse.ArgumentParser):
 
 
 # ---------------------------------------------------------------------------------------------- episodes
-def load_rows(path: Path) -> tuple[list[dict], Path, str]:
-    """Rows of ``episodes.jsonl`` (``path`` is the file or a results dir), the file, the ETH time base."""
-    path = Path(path)
-    if not path.exists():
-        raise ValueError(f"no such file or directory: {path}")
-    if path.is_dir():
-        if not (path / "episodes.jsonl").is_file():
-            raise ValueError(f"no episodes.jsonl in {path} (evaluate with eval.save_episodes=true)")
-        path = path / "episodes.jsonl"
-    rows = []
-    for i, line in enumerate(path.read_text().splitlines(), 1):
-        if not line.strip():
-            continue
-        try:
-            row = json.loads(line)
-        except json.JSONDecodeError:
-            raise ValueError(f"{path} line {i}: not valid JSON") from None
-        missing = [k for k in ("scene", "episode", "start_time_s", "dt", "start", "goal", "robot_xy", "outcome")
-                   if not isinstance(row, dict) or k not in row]
-        if missing:
-            raise ValueError(f"{path} line {i}: not an episode record (missing {', '.join(missing)})")
-        rows.append(row)
-    if not rows:
-        raise ValueError(f"{path} holds no episodes")
-    time_base = "true"
-    results = path.parent / "results.json"
-    if results.is_file():
-        try:
-            time_base = str(json.loads(results.read_text()).get("sim_config", {}).get("time_base", "true"))
-        except json.JSONDecodeError:
-            pass
-    return rows, path, time_base
-
-
 def _ranges(ids: list[int]) -> str:
     ids = sorted(ids)
     if ids == list(range(ids[0], ids[-1] + 1)):
