@@ -27,10 +27,14 @@ the host code.
 
 Compilation: ``cache=True`` stores the machine code in ``__pycache__`` beside this file, or, when that
 is not writable (an installed wheel), in numba's per-user cache directory; a cold compile is ~5 s,
-a cached load ~0.3 s, paid at the first call (numba imports lazily too).
+a cached load ~0.3 s, paid at the first call (numba imports lazily too). Threads: as many as torch's
+intra-op threads, on numba's workqueue layer (see :func:`_compile`).
 """
 
 from __future__ import annotations
+
+import os
+import threading
 
 import numpy as np
 import torch
@@ -41,6 +45,7 @@ DROP = np.float32(1e30)  # crowdbench.envs.humans.lp._DROP
 TINY = np.float32(np.finfo(np.float32).tiny)
 
 _kernel = None
+_LOCK = threading.Lock()  # the workqueue layer must not be entered by two threads at once
 
 
 def _step(x):
@@ -226,6 +231,11 @@ def _compile():
     if _kernel is None:
         import numba
 
+        if "NUMBA_THREADING_LAYER" not in os.environ:
+            # workqueue, not OpenMP: after a parallel region OpenMP's workers spin, taking the cores from
+            # torch's threads; on 2 busy cores (load ~10) the 20-human world ran 3x faster with workqueue.
+            # (Only until numba's first parallel launch in the process: then the layer is fixed.)
+            numba.config.THREADING_LAYER = "workqueue"
         _prange = numba.prange
         opts = {"cache": True, "fastmath": False, "error_model": "numpy"}
         g = globals()
@@ -255,9 +265,11 @@ def orca_velocities(pos, vel, pref, valid, radius, max_speed, *, time_horizon: f
     m = max(min(int(max_neighbors), k - 1), 0)
     out = np.empty((n, k, 2), np.float32)
     valid_np = np.ascontiguousarray(valid.numpy())
-    kernel(_f32(pos), _f32(vel), _f32(pref), valid_np, _per_agent(radius, valid), _per_agent(max_speed, valid),
-           np.float32(1.0 / float(time_horizon)), np.float32(1.0 / float(dt) - 1.0 / float(time_horizon)),
-           np.float32(float(neighbor_dist) ** 2), m, out)
+    args = (_f32(pos), _f32(vel), _f32(pref), valid_np, _per_agent(radius, valid), _per_agent(max_speed, valid),
+            np.float32(1.0 / float(time_horizon)), np.float32(1.0 / float(dt) - 1.0 / float(time_horizon)),
+            np.float32(float(neighbor_dist) ** 2), m, out)
+    with _LOCK:
+        kernel(*args)
     new = torch.from_numpy(out)
     if vel.dtype == torch.float32:
         return new
