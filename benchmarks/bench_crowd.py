@@ -324,6 +324,8 @@ def main(argv=None) -> None:
     ap.add_argument("--crowdnav-steps", type=int, default=400)
     ap.add_argument("--crowdnav-policy", default="orca,fixed")
     ap.add_argument("--skip-reactive", action="store_true")
+    ap.add_argument("--orca-backend", default="numba,torch", help="ORCA solvers: numba (compiled), torch")
+    ap.add_argument("--pyrvo", action="store_true", help="also a Python loop over pyrvo simulators (ORCA rows)")
     args = ap.parse_args(argv)
 
     load = os.getloadavg()
@@ -342,16 +344,30 @@ def main(argv=None) -> None:
             print(f"  {n} humans: {args.pool} episodes, {pools[n][1]}, {pools[n][2] * 1e3:.1f} ms per episode to make")
         print("\n| humans | M | robot visible | path | threads | B | env-steps/s | us per env-step |")
         print("|---|---|---|---|---|---|---|---|")
-        runs = [(h, n, v, p, t, args.batch) for h in args.humans.split(",") for n in args.n_humans for v in visible
+        models = [(h, be) for h in args.humans.split(",") for be in (args.orca_backend.split(",") if h == "orca"
+                                                                      else ["torch"])]
+        runs = [(h, be, n, v, p, t, args.batch) for h, be in models for n in args.n_humans for v in visible
                 for p in paths for t in args.threads]
         if args.single:
-            runs += [("orca", n, False, p, 1, 1) for n in args.n_humans for p in paths]
-        for h, n, v, p, t, b in runs:
+            runs += [("orca", be, n, False, p, 1, 1) for _, be in models if _ == "orca" for n in args.n_humans
+                     for p in paths]
+        for h, be, n, v, p, t, b in runs:
             torch.set_num_threads(t)
-            cfg = CrowdNavConfig(humans=h, n_humans=n, robot_visible=v)
+            cfg = CrowdNavConfig(humans=h, n_humans=n, robot_visible=v, orca_backend=be)
             r = fns[p](cfg, b, pools[n][0], args.seconds, args.robot)
-            print(f"| {h} | {n} | {'yes' if v else 'no'} | {names[p]} | {t} | {b} | {r:,.0f} | {1e6 / r:.1f} |",
+            label = f"{h} ({be})" if h == "orca" else h
+            print(f"| {label} | {n} | {'yes' if v else 'no'} | {names[p]} | {t} | {b} | {r:,.0f} | {1e6 / r:.1f} |",
                   flush=True)
+        if args.pyrvo:
+            from pyrvo_loop import pyrvo_rate
+
+            for n in args.n_humans:
+                for t in args.threads:
+                    cfg = CrowdNavConfig(n_humans=n)
+                    r = pyrvo_rate(pools[n][0], args.batch, t, args.seconds, cfg.dt, cfg.human_radius
+                                   + cfg.orca_radius_margin, cfg.human_v_pref, cfg.orca)
+                    print(f"| orca (Python loop over pyrvo, {t} process(es)) | {n} | yes | set pref + do_step + "
+                          f"read back | {t} | {args.batch} | {r:,.0f} | {1e6 / r:.1f} |", flush=True)
 
     if args.replay_batch:
         B = args.replay_batch

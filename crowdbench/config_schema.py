@@ -111,6 +111,7 @@ class CrowdNavEnvConfig(SimEnvConfig):
     orca_max_neighbors: int = bounded(10, ge=0)
     orca_time_horizon: float = bounded(5.0, gt=0)
     orca_radius_margin: float = bounded(0.01, ge=0)
+    orca_backend: str = bounded("numba", choices=("numba", "torch"))  # the same numbers; numba is faster
     eval_settings: list[str] | None = field(default=None, metadata={"min_len": 1})  # e.g. [circle_n5]
     eval_episodes: int | None = bounded(None, ge=1)
 

@@ -93,7 +93,9 @@ def evaluate_crowdnav(policy: Policy, cfg: CrowdNavConfig, settings=None, episod
         results["scenes"][name] = aggregate(m)
         if save_episodes:
             rows += episode_rows(name, eps, tr, m, c)
-    results["sim_config"] = {k: v for k, v in asdict(cfg).items() if k not in ("scenario", "n_humans", "frame")}
+    # orca_backend is how, not what: both solvers give the same numbers (results stay comparable)
+    skip = ("scenario", "n_humans", "frame", "orca_backend")
+    results["sim_config"] = {k: v for k, v in asdict(cfg).items() if k not in skip}
     if out_dir is not None:
         write_results(out_dir, results, rows if save_episodes else None)
     return results

@@ -24,6 +24,7 @@ def training_config(cfg: dict) -> dict:
     out = {g: dict(cfg[g]) for g in TRAINING}
     out["train"].pop("max_minutes", None)  # a wall-time cap, not a training setting
     out["train"].pop("save_buffer", None)  # what a checkpoint holds, not how the run trains
+    out["env"].pop("orca_backend", None)  # which ORCA solver computes the crowd (the same numbers), not what
     return {**out, "seed": cfg["seed"]}
 
 

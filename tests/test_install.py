@@ -40,6 +40,18 @@ def test_installed_wheel_evaluates_from_outside_the_repository(tmp_path):
     res = json.loads((elsewhere / "o" / "results.json").read_text())
     assert list(res["scenes"]) == ["hotel"] and res["numerics"]["cpu_capability"] == "DEFAULT"
     assert 0.0 <= res["scenes"]["hotel"]["success_rate"]["mean"] <= 1.0
+    # the compiled ORCA from the wheel: equal to the torch solver; a second process loads it from numba's cache
+    orca = ("import time; t = time.perf_counter(); import torch; from crowdbench.envs.humans import orca, orca_kernel; "
+            "from crowdbench.envs.humans.rvo2_reference import random_configs; c = random_configs('dense', 50, 8, 1); "
+            "p = dict(time_horizon=5.0, dt=0.25, neighbor_dist=10.0, max_neighbors=10); "
+            "assert orca_kernel.__file__.startswith({!r}); "
+            "assert torch.equal(orca_kernel.orca_velocities(**c, **p), orca.orca_velocities(**c, **p)); "
+            "print(time.perf_counter() - t)").format(str(tmp_path / "venv"))
+    for _ in range(2):
+        k = subprocess.run([bin_dir / "python", "-c", orca], cwd=elsewhere, env=env, capture_output=True, text=True,
+                           timeout=300, check=False)
+        assert k.returncode == 0, k.stderr[-2000:]
+    assert list((venv_site / "crowdbench" / "envs" / "humans" / "__pycache__").glob("orca_kernel*.nbi"))
     lb = subprocess.run([bin_dir / "crowdbench", "leaderboard", "--check"], cwd=elsewhere, env=env,
                         capture_output=True, text=True, timeout=300, check=False)
     assert lb.returncode == 1 and "no submissions under leaderboard/submissions" in lb.stdout + lb.stderr

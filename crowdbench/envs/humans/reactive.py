@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import torch
 
-from crowdbench.envs.humans.orca import orca_velocities
+from crowdbench.envs.humans import orca, orca_kernel
 from crowdbench.envs.humans.sfm import SFMParams, social_force_velocities
 
 
@@ -30,6 +30,11 @@ class OrcaParams:
     max_neighbors: int = 10
     time_horizon: float = 5.0  # s
     radius_margin: float = 0.01  # m added to every body's radius, as CrowdNav does (safety_space 0)
+    # numba: the compiled solver (orca_kernel), equal to the torch one (orca, the reference) value for value
+    backend: str = "numba"
+
+
+ORCA_BACKENDS = {"numba": orca_kernel.orca_velocities, "torch": orca.orca_velocities}
 
 
 class ReactiveCrowd:
@@ -101,7 +106,7 @@ class OrcaCrowd(ReactiveCrowd):
             pref = torch.cat((pref, world.vel), 1)
             valid = torch.cat((valid, world.present()), 1)
             radius = torch.cat((radius, torch.full(world.outcome.shape, self.robot_radius + p.radius_margin)), 1)
-        new = orca_velocities(pos, vel, pref, valid, radius, self.v_pref, time_horizon=p.time_horizon, dt=self.dt,
+        new = ORCA_BACKENDS[p.backend](pos, vel, pref, valid, radius, self.v_pref, time_horizon=p.time_horizon, dt=self.dt,
                               neighbor_dist=p.neighbor_dist, max_neighbors=p.max_neighbors)
         # RVO2's fallback program can leave the speed limit when half-planes are nearly opposite (22 m/s
         # measured in a 50-human crossing); a human is not that fast: cap it (RVO2 and CrowdNav do not)
