@@ -61,6 +61,15 @@ def test_every_shipped_config_combination_validates_and_every_key_has_a_schema_f
                 with pytest.raises(ConfigError, match=r"^algo\.(replay|exploration_sigma): algo='ppo' has no such key"):
                     validate(cfg)
                 continue
+            value_method = any(o.startswith("method=") and o.endswith("_value") for o in overrides)
+            value_exp = "experiment=value_crowdnav" in overrides
+            other_exp = any(f"experiment={e}" in overrides for e in OFF_POLICY_EXPERIMENTS)
+            if value_method and other_exp or value_exp and not value_method and any(
+                    o.startswith("method=") for o in overrides):
+                # an actor-critic recipe's keys are no value keys, and the value recipe's none of theirs
+                with pytest.raises(ConfigError, match=r"^algo\.\w+: algo='\w+' has no such key"):
+                    validate(cfg)
+                continue
             if "experiment=reactive" in overrides and "env=replay" not in overrides:
                 with pytest.raises(ConfigError, match="^env.humans: must be one of orca, sfm"):
                     validate(cfg)  # reactive replay is the replay env's (env.humans=reactive_replay)
