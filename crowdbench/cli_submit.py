@@ -161,6 +161,20 @@ def existing(root: Path) -> tuple[set[str], set[str]]:
     return names, labels
 
 
+def command_overrides(run: Path) -> list[str] | None:
+    """The command-line overrides a finished run recorded in its ``results.json`` (``out=`` and ``resume=``
+    dropped: where it ran, not how), or None."""
+    import json
+
+    try:
+        got = json.loads((Path(run) / "results.json").read_text())["meta"]["overrides"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    if not isinstance(got, list) or not all(isinstance(o, str) for o in got):
+        return None
+    return [o for o in got if not o.startswith(("out=", "resume="))]
+
+
 def training_overrides(cfg: dict) -> list[str]:
     """The run's ``algo``/``encoder``/``env``/``train`` values that differ from the defaults of its
     algo and encoder, as ``key=value`` overrides (the submission records how it was trained)."""
@@ -207,6 +221,8 @@ def _submit_claimed(run: Path, name, entry, authors, link, notes, root, override
             missing = "--name" if not name else "--entry"
             raise UsageError(f"submit: {run} has no submission.{missing[2:]} in its config (train it with "
                              f"method=... or an experiment), pass {missing}")
+        if overrides is None and meta.get("experiment"):  # trained with an experiment: its own command line
+            overrides = command_overrides(run)
         overrides = list(overrides) if overrides is not None else training_overrides(cfg)
         if not any(o.startswith("seed=") for o in overrides):
             overrides.append(f"seed={cfg['seed']}")

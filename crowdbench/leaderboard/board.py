@@ -84,6 +84,11 @@ def _terminate(signum, frame):
     raise SystemExit(128 + signum)  # unwinds: every job's finally kills its worker, the pool is terminated
 
 
+def missing_line(name: str, track: str) -> str:
+    """How TRACKS.md lists a submission's track without results (and the command that evaluates it)."""
+    return f"{name} ({track}): results missing or out of date (`crowdbench leaderboard --only {name} --tracks {track}`)"
+
+
 def run(root: Path = DEFAULT_ROOT, only: list[str] | None = None, check: bool = False, force: bool = False,
         episodes: int | None = None, scenes: list[str] | None = None, log=None, **kw) -> int:
     """:func:`_run` holding the root's lock (not with ``check``, which writes nothing), with SIGTERM
@@ -194,8 +199,7 @@ def _run(root: Path, only: list[str] | None = None, check: bool = False, force: 
                         log(f"{_tag(d.name, name)}: unchanged, cached results; --force re-evaluates")
                     unverified += not trusted
                 else:
-                    missing.append((name, (f"{d.name} ({name}): results missing or out of date "
-                                          f"(`crowdbench leaderboard --only {d.name} --tracks {name}`)")))
+                    missing.append((name, missing_line(d.name, name)))
                 continue
             if why and selected and not force:
                 log(f"{_tag(d.name, name)}: cached results {why}: re-evaluated")
