@@ -156,7 +156,7 @@ def test_tracks_page_is_rendered_from_the_committed_results():
     from pathlib import Path
 
     from crowdbench.envs.protocol import EVAL_SCENES
-    from crowdbench.leaderboard.board import missing_line
+    from crowdbench.leaderboard.board import unevaluated
     from crowdbench.leaderboard.track_tables import above_the_oracle, render_tracks
 
     repo = Path(__file__).resolve().parents[1] / "leaderboard"
@@ -166,16 +166,11 @@ def test_tracks_page_is_rendered_from_the_committed_results():
             if (d / TRACKS[t].results_file).is_file():
                 by_track[t].append(json.loads((d / TRACKS[t].results_file).read_text()))
     text = (repo / "TRACKS.md").read_text()
-    learned = {d.name for d in (repo / "submissions").iterdir()
-               if "kind: learned" in (d / "submission.yaml").read_text()}
-    privileged = {d.name for d in (repo / "submissions").iterdir()
-                  if "privileged: true" in (d / "submission.yaml").read_text()}
     # every learned submission on every track it fits (privileged ones: not reactive replay), or listed
     # under "Not evaluated" with the command that evaluates it
-    have = {t: {r["meta"]["submission"] for r in by_track[t] if r["meta"]["kind"] == "learned"} for t in TRACK_ORDER}
-    fits = {t: learned if TRACKS[t].privileged_ok else learned - privileged for t in TRACK_ORDER}
-    assert all(have[t] <= fits[t] for t in TRACK_ORDER)
-    missing = [missing_line(n, t) for n in sorted(learned) for t in TRACK_ORDER if n in fits[t] - have[t]]
+    missing = unevaluated(repo, by_track)
+    assert all(r["meta"]["kind"] != "learned" or r["privileged"] is not True or TRACKS[t].privileged_ok
+               for t in TRACK_ORDER for r in by_track[t] if "privileged" in r)
     assert render_tracks(by_track, list(EVAL_SCENES), None, missing, []) == text
     assert not any(r["meta"]["kind"] == "oracle" for t in ("v2-orca", "v2-sfm") for r in by_track[t])
     # the oracle is the upper bound of every track where it is privileged: no learned row above it
