@@ -94,30 +94,29 @@ def _lp1(lines, i, radius, optx, opty, direction_opt):
     return ok, pxi + t * dxi, pyi + t * dyi
 
 
-def _lp2(lines, n_lines, radius, optx, opty):
-    """linearProgram2, closest to ``opt`` (lp.lp2_packed): (x, y, index of the failing line or n_lines)."""
-    n2 = optx * optx + opty * opty
-    scale = radius / np.sqrt(n2) if n2 > radius * radius else F1
-    rx, ry = optx * scale, opty * scale
+def _lp2_lines(lines, n_lines, radius, optx, opty, rx, ry, direction):
+    """linearProgram2's loop from ``(rx, ry)``: each violated line projects the point onto it (linearProgram1);
+    (x, y, index of the failing line or n_lines)."""
     for i in range(n_lines):
         if _violation(lines, i, rx, ry) > F0:
-            ok, nx, ny = _lp1(lines, i, radius, optx, opty, False)
+            ok, nx, ny = _lp1(lines, i, radius, optx, opty, direction)
             if not ok:
                 return rx, ry, i
             rx, ry = nx, ny
     return rx, ry, n_lines
 
 
+def _lp2(lines, n_lines, radius, optx, opty):
+    """linearProgram2, closest to ``opt`` (lp.lp2_packed): (x, y, index of the failing line or n_lines)."""
+    n2 = optx * optx + opty * opty
+    scale = radius / np.sqrt(n2) if n2 > radius * radius else F1
+    return _lp2_lines(lines, n_lines, radius, optx, opty, optx * scale, opty * scale, False)
+
+
 def _lp2_direction(lines, n_lines, radius, optx, opty):
     """linearProgram2 pushing along unit ``opt`` (lp._lp2_direction_masked): (x, y, ok)."""
-    rx, ry = optx * radius, opty * radius
-    for i in range(n_lines):
-        if _violation(lines, i, rx, ry) > F0:
-            ok, nx, ny = _lp1(lines, i, radius, optx, opty, True)
-            if not ok:
-                return rx, ry, False
-            rx, ry = nx, ny
-    return rx, ry, True
+    rx, ry, fail = _lp2_lines(lines, n_lines, radius, optx, opty, optx * radius, opty * radius, True)
+    return rx, ry, fail == n_lines
 
 
 def _lp3(lines, n_lines, begin, radius, rx, ry, bis):
@@ -239,7 +238,7 @@ def _compile():
         _prange = numba.prange
         opts = {"cache": True, "fastmath": False, "error_model": "numpy"}
         g = globals()
-        for name in ("_step", "_lerp", "_violation", "_lp1", "_lp2", "_lp2_direction", "_lp3", "_neighbors",
+        for name in ("_step", "_lerp", "_violation", "_lp1", "_lp2_lines", "_lp2", "_lp2_direction", "_lp3", "_neighbors",
                      "_line"):
             g[name] = numba.njit(**opts)(g[name])
         _kernel = numba.njit(parallel=True, **opts)(_solve)
