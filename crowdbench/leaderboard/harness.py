@@ -93,7 +93,7 @@ def learned_policy(sub: Submission):
         raise SubmissionError(path, "encoder", f"{d['encoder']!r} but the checkpoint was trained with {c_enc!r}")
     if c_algo != d["algo"]:
         raise SubmissionError(path, "algo", f"{d['algo']!r} but the checkpoint was trained with {c_algo!r}")
-    look = (cfg["algo"].get("lookahead") if isinstance(cfg["algo"], dict) else None) if c_algo == "value" else None
+    look = cfg["algo"].get("lookahead") if c_algo == "value" else None  # (cfg["algo"]["name"] read: a mapping)
     if look != d.get("lookahead"):
         raise SubmissionError(path, "lookahead", f"{d.get('lookahead')!r} but the checkpoint acts with lookahead {look!r}")
     home, got = d.get("track", "v1"), trained_track(cfg)
