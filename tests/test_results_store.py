@@ -157,14 +157,21 @@ def _alive(pid: int) -> bool:
 
 @pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="reads the process tree from /proc")
 @pytest.mark.slow
-def test_sigterm_stops_the_pool_and_every_worker(tmp_path):
-    """M5: killing `leaderboard --jobs 2` orphaned its pool processes (and their workers)."""
+@pytest.mark.parametrize("how", ["sigterm", "ctrl-c"])
+def test_a_signal_stops_the_pool_and_every_worker(tmp_path, how):
+    """M5: killing `leaderboard --jobs 2` orphaned its pool processes (and their workers). Ctrl-C is
+    SIGINT to the terminal's whole process group: the main process and its pool processes at once."""
     root = tmp_path / "lb"
     for name in ("slow_a", "slow_b"):
         make_learned(root, name, ENCODER + SLOW)
+
+    def own_group():  # a shell's background job (as CI runs pytest) inherits SIGINT ignored: a terminal's is not
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
+        os.setpgrp()
+
     proc = subprocess.Popen([sys.executable, "-m", "crowdbench", "leaderboard", "--root", str(root), "--jobs", "2",
                              "--episodes", "3", "--scenes", "hotel", "--tracks", "v1"],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, preexec_fn=own_group)
     tree: set[int] = set()
     for _ in range(600):  # until both workers run (a pool process each, each with its worker)
         tree |= _descendants(proc.pid)
@@ -173,9 +180,12 @@ def test_sigterm_stops_the_pool_and_every_worker(tmp_path):
             break
         time.sleep(0.1)
     assert proc.poll() is None, proc.communicate()[0]
-    proc.send_signal(signal.SIGTERM)
+    if how == "sigterm":
+        proc.send_signal(signal.SIGTERM)
+    else:
+        os.killpg(proc.pid, signal.SIGINT)
     out, _ = proc.communicate(timeout=120)
-    assert proc.returncode == 128 + signal.SIGTERM, out
+    assert proc.returncode == 128 + (signal.SIGTERM if how == "sigterm" else signal.SIGINT), out
     assert "Traceback" not in out, out
     left = []
     for _ in range(100):
