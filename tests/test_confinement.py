@@ -185,3 +185,26 @@ def test_a_worker_cannot_start_processes(tmp_path, mode):
     10 s; 300 sleeping children were forked). One process per worker: its CPU limit is the job's."""
     said = report(tmp_path / "lb", "forker", FORK, limits(mode))
     assert said.endswith("forked 0") and "fork refused" in said, said
+
+
+def test_a_harness_started_from_tmp_still_gives_its_worker_a_private_scratch(tmp_path):
+    """A harness run from /tmp (`python -m pytest` there puts /tmp on sys.path, which the worker's binds
+    follow) bound the host's /tmp read-only over the worker's scratch: every worker died importing torch
+    ("No usable temporary directory found"), and the host's /tmp was visible to it."""
+    import subprocess
+
+    from crowdbench.leaderboard.sandbox import _bwrap_args
+
+    lim = limits("bubblewrap")
+    host_file = Path("/tmp") / f"crowdbench-host-{os.getpid()}"
+    host_file.write_text("x")
+    sub = tmp_path / "sub"
+    sub.mkdir()
+    try:
+        argv = [bubblewrap(), *_bwrap_args(lim, ["/tmp", str(sub)]), "--", "sh", "-c",
+                f"touch /tmp/mine && ls /tmp && test ! -e {host_file} && test -d {sub}"]
+        done = subprocess.run(argv, capture_output=True, text=True, timeout=60, check=False)
+    finally:
+        host_file.unlink()
+    assert done.returncode == 0, done.stderr + done.stdout
+    assert "mine" in done.stdout.split()

@@ -165,13 +165,15 @@ def test_a_signal_stops_the_pool_and_every_worker(tmp_path, how):
     for name in ("slow_a", "slow_b"):
         make_learned(root, name, ENCODER + SLOW)
 
-    def own_group():  # a shell's background job (as CI runs pytest) inherits SIGINT ignored: a terminal's is not
-        signal.signal(signal.SIGINT, signal.SIG_DFL)
-        os.setpgrp()
-
-    proc = subprocess.Popen([sys.executable, "-m", "crowdbench", "leaderboard", "--root", str(root), "--jobs", "2",
-                             "--episodes", "3", "--scenes", "hotel", "--tracks", "v1"],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, preexec_fn=own_group)
+    # a shell's background job (as CI runs pytest) inherits SIGINT ignored, and an ignored signal stays
+    # ignored across exec; a handled one is reset to its default there, as a terminal's process has it
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        proc = subprocess.Popen([sys.executable, "-m", "crowdbench", "leaderboard", "--root", str(root), "--jobs",
+                                 "2", "--episodes", "3", "--scenes", "hotel", "--tracks", "v1"],
+                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, process_group=0)
+    finally:
+        signal.signal(signal.SIGINT, old)
     tree: set[int] = set()
     for _ in range(600):  # until both workers run (a pool process each, each with its worker)
         tree |= _descendants(proc.pid)

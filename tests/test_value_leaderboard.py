@@ -28,25 +28,30 @@ def value_checkpoint(path: Path, lookahead: str, net: str = "cadrl") -> dict:
     return cfg
 
 
-def value_entry(root: Path, name: str, lookahead: str, trained: str = "query", extra: str = "") -> Path:
-    """A value submission whose checkpoint acts with ``trained``; its yaml says ``lookahead`` (+ ``extra``)."""
+def value_entry(root: Path, name: str, lookahead: str, trained: str = "query", extra: str = "",
+                net: str = "cadrl", entry: str = "CADRL") -> Path:
+    """A value submission whose checkpoint acts with ``trained`` (and CADRL's network); its yaml says
+    ``lookahead`` and ``net`` (+ ``extra``)."""
     d = root / "submissions" / name
     d.mkdir(parents=True)
     cfg = value_checkpoint(d / "checkpoint.pt", trained)
     priv = "privileged: true\n" if lookahead == "query" else ""
     (d / "submission.yaml").write_text(
-        f"name: {name}\nkind: learned\nentry: CADRL (value, {lookahead})\nencoder: {cfg['encoder']['name']}\n"
-        f"algo: value\nlookahead: {lookahead}\n{priv}track: crowdnav-circle5\nauthors: [t]\n{extra}")
+        f"name: {name}\nkind: learned\nentry: {entry} (value, {lookahead})\nencoder: {cfg['encoder']['name']}\n"
+        f"algo: value\nlookahead: {lookahead}\nnet: {net}\n{priv}track: crowdnav-circle5\nauthors: [t]\n{extra}")
     return d
 
 
 @pytest.mark.parametrize("yaml_text, field", [
-    ("algo: value\n", "lookahead"),                                  # a value entry names its model
-    ("algo: value\nlookahead: query\n", "privileged"),               # query reads the simulator: must say so
-    ("algo: value\nlookahead: cv\nprivileged: true\n", "privileged"),  # cv knows nothing the robot cannot see
-    ("algo: value\nlookahead: oracle\nprivileged: true\n", "lookahead"),
+    ("algo: value\nnet: sarl\n", "lookahead"),                                  # a value entry names its model
+    ("algo: value\nnet: sarl\nlookahead: query\n", "privileged"),               # query reads the simulator
+    ("algo: value\nnet: sarl\nlookahead: cv\nprivileged: true\n", "privileged"),  # cv knows nothing hidden
+    ("algo: value\nnet: sarl\nlookahead: oracle\nprivileged: true\n", "lookahead"),
     ("algo: td3\nlookahead: cv\n", "lookahead"),                     # only value entries act by lookahead
     ("algo: td3\nprivileged: true\n", "privileged"),
+    ("algo: value\nlookahead: cv\n", "net"),                          # a value entry names its network
+    ("algo: value\nlookahead: cv\nnet: transformer\n", "net"),
+    ("algo: td3\nnet: sarl\n", "net"),                               # only value entries have one
 ])
 def test_privilege_must_be_declared_exactly(tmp_path, yaml_text, field):
     d = tmp_path / "x"
@@ -72,7 +77,7 @@ def test_make_submission_declares_the_lookahead_and_its_privilege(tmp_path):
         value_checkpoint(run_dir / "checkpoint.pt", look)
         sub = make_submission(run_dir, f"cadrl_value_{look}_s0", "CADRL (value)", ["t"], [], root=tmp_path / "lb")
         data = yaml.safe_load((sub / "submission.yaml").read_text())
-        assert data["algo"] == "value" and data["lookahead"] == look
+        assert data["algo"] == "value" and data["lookahead"] == look and data["net"] == "cadrl"
         assert data.get("privileged", False) is (look == "query")
         assert data["track"] == "crowdnav-circle5"
 
@@ -86,17 +91,30 @@ def test_a_query_entry_is_evaluated_privileged_and_labelled_so(tmp_path):
     value_entry(root, "q", "query")
     value_entry(root, "c", "cv", trained="cv")
     value_entry(root, "liar", "cv", trained="query")  # says cv, acts with the simulator's next states
+    value_entry(root, "sarl_liar", "cv", trained="cv", net="sarl", entry="SARL")  # says SARL, is CADRL
     logs: list[str] = []
     code = run(root, episodes=3, tracks=["crowdnav-circle5"], log=logs.append)
-    assert code == 1  # the liar is refused
+    assert code == 1  # the liars are refused
     res = json.loads((root / "results" / "q" / "crowdnav-circle5.json").read_text())
     assert res["privileged"] is True and res["lookahead"] == "query"
     cv = json.loads((root / "results" / "c" / "crowdnav-circle5.json").read_text())
     assert "privileged" not in cv and cv["lookahead"] == "cv"
     assert not (root / "results" / "liar").exists()
     assert any("liar" in line and "lookahead" in line for line in logs), logs
+    assert any("sarl_liar" in line and "net" in line and "'cadrl'" in line for line in logs), logs
     board = (root / "TRACKS.md").read_text()
     assert "CADRL (value, query) (PRIVILEGED)" in board and "CADRL (value, cv) (PRIVILEGED)" not in board
+
+
+def test_the_submissions_tables_name_the_value_network_that_acts():
+    """SARL's rows read `encoder gatedgcn` (the config's unused default); a value entry names its network,
+    and `net: encoder` is the encoder with a value head."""
+    from crowdbench.leaderboard.entries import model_of
+
+    assert model_of({"encoder": "gatedgcn", "algo": "value", "net": "sarl"}) == "sarl"
+    assert model_of({"encoder": "gatedgcn", "algo": "value", "net": "encoder"}) == "gatedgcn"
+    assert model_of({"encoder": "rgl", "algo": "td3"}) == "rgl"
+    assert model_of({"policy": "orca"}) == "orca"
 
 
 def test_a_row_above_the_privileged_oracle_is_reported():

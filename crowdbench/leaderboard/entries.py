@@ -34,8 +34,17 @@ def recipe(sub: Submission) -> dict:
     if sub.kind != "learned":
         return {"kind": sub.kind}
     over = d.get("overrides") or []
-    return {"kind": "learned", "encoder": d["encoder"], "algo": d["algo"], "experiment": d.get("experiment"),
+    return {"kind": "learned", "encoder": d["encoder"], "algo": d["algo"], "net": d.get("net"),
+            "experiment": d.get("experiment"),
             "overrides": sorted(o for o in over if not o.replace(" ", "").startswith("seed="))}
+
+
+def model_of(d: dict) -> str:
+    """What acts, for the tables' encoder column: a baseline's policy, a value entry's network (SARL's is
+    no encoder of the registry; ``net: encoder`` is the encoder with a value head), else the encoder."""
+    if d.get("net") not in (None, "encoder"):
+        return d["net"]
+    return d.get("encoder", d.get("policy", "—"))
 
 
 def _describe(r: dict) -> str:

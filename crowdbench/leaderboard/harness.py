@@ -96,6 +96,9 @@ def learned_policy(sub: Submission):
     look = cfg["algo"].get("lookahead") if c_algo == "value" else None  # (cfg["algo"]["name"] read: a mapping)
     if look != d.get("lookahead"):
         raise SubmissionError(path, "lookahead", f"{d.get('lookahead')!r} but the checkpoint acts with lookahead {look!r}")
+    net = cfg["algo"].get("net") if c_algo == "value" else None
+    if net != d.get("net"):
+        raise SubmissionError(path, "net", f"{d.get('net')!r} but the checkpoint's value network is {net!r}")
     home, got = d.get("track", "v1"), trained_track(cfg)
     if got != home:
         raise SubmissionError(path, "track", f"{home!r} but the checkpoint was trained on "

@@ -12,6 +12,7 @@ import torch
 
 from crowdbench.envs.protocol import EVAL_SCENES, PAPER_SCENES, PROTOCOL_VERSION
 from crowdbench.eval import rate_ci
+from crowdbench.leaderboard.entries import model_of
 from crowdbench.leaderboard.metrics import sections
 from crowdbench.leaderboard.schema import KINDS, link_problem
 from crowdbench.leaderboard.text import diff_rows, md  # noqa: F401 - diff_rows: render.diff_rows for --check
@@ -164,7 +165,7 @@ def render_readme(results: list[dict], rejected: list[str], scenes: list[str], e
             d = r["submission"]
             authors = d["authors"] if isinstance(d["authors"], str) else ", ".join(map(str, d["authors"]))
             kind, link = d["kind"] + (" (privileged)" if d.get("privileged") else ""), d.get("link", "—")
-            cells = [d["name"], kind, d.get("encoder", d.get("policy", "—")), d.get("algo", "—"), d.get("seed", "—"),
+            cells = [d["name"], kind, model_of(d), d.get("algo", "—"), d.get("seed", "—"),
                      authors]
             name, kind, enc, algo, seed, authors = map(md, cells)  # a valid link needs no escaping (LINK_RE)
             L.append(f"| {name} | {label(g)} | {kind} | {enc} | {algo} | {seed} | {authors} | "

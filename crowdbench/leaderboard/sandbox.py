@@ -91,9 +91,11 @@ def _masked() -> list[str]:
 
 
 def _kept(keep: list[str], masked: list[str]) -> list[str]:
-    """Paths of ``keep`` (and where their symlinks lead) that lie under a masked directory, outermost first."""
+    """Paths of ``keep`` (and where their symlinks lead) that lie under a masked directory, outermost first.
+    Never a masked directory itself: a harness started from ``/tmp`` has it on ``sys.path``, and binding it
+    would show the host's ``/tmp`` instead of the worker's scratch, read-only (no worker could start)."""
     paths = {q for p in keep if p and os.path.exists(p) for q in (os.path.abspath(p), os.path.realpath(p))}
-    under = sorted(p for p in paths if any(p == m or p.startswith(m.rstrip("/") + "/") for m in masked))
+    under = sorted(p for p in paths if any(p.startswith(m.rstrip("/") + "/") for m in masked))
     out: list[str] = []
     for p in under:  # sorted: an ancestor comes before what it contains
         if not any(p.startswith(q.rstrip("/") + "/") for q in out):

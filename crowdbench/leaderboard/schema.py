@@ -23,6 +23,7 @@ from crowdbench.envs.lookahead import MODELS as LOOKAHEAD_MODELS
 from crowdbench.envs.lookahead import PRIVILEGED_MODELS
 from crowdbench.leaderboard.text import bad_char, one_line, short
 from crowdbench.leaderboard.tracks import TRACK_ORDER, trained_track
+from crowdbench.models.value_nets import NETS as VALUE_NETS
 from crowdbench.outputs import pid_dir
 
 PACKAGE_DIR = Path(__file__).resolve().parents[1]
@@ -100,11 +101,13 @@ SCHEMA: dict[str, tuple[tuple, tuple, str]] = {
                                           "with lookahead: query (reads the humans' next states); false otherwise")),
     "lookahead": ((str,), (), ("algo value: the humans' next-state model its candidates are computed with: "
                                + " | ".join(LOOKAHEAD_MODELS) + " (query: privileged)")),
+    "net": ((str,), (), ("algo value: its value network: " + " | ".join(VALUE_NETS)
+                         + " (encoder: the entry's `encoder` with a value head)")),
     "checkpoint": ((str,), (), "checkpoint file name inside the submission directory (default checkpoint.pt)"),
     "notes": ((str,), (), "free text"),
 }
 LEARNED_ONLY = ("encoder", "encoder_import", "encoder_entry_points", "algo", "checkpoint", "experiment", "track",
-                "lookahead")
+                "lookahead", "net")
 
 
 def name_problem(name) -> str | None:
@@ -236,6 +239,12 @@ def _check_privilege(path: Path, data: dict) -> None:
     if kind == "learned" and data.get("algo") == "value" and look is None:
         raise SubmissionError(path, "lookahead", f"an algo: value entry must name its lookahead model "
                                                  f"({' | '.join(LOOKAHEAD_MODELS)})")
+    net = data.get("net")
+    if net is not None and data.get("algo") != "value":
+        raise SubmissionError(path, "net", "only algo: value entries name a value network")
+    if kind == "learned" and data.get("algo") == "value" and net not in VALUE_NETS:
+        raise SubmissionError(path, "net", f"an algo: value entry must name its value network, one of "
+                                           f"{', '.join(VALUE_NETS)}; got {short(net)}")
     needs = kind == "oracle" or look in PRIVILEGED_MODELS
     if needs and priv is not True:
         why = "the oracle knows the humans' future" if kind == "oracle" else \
@@ -392,7 +401,7 @@ def make_submission(run_dir: Path, name: str, entry: str, authors: list[str], ov
             "algo": cfg["algo"]["name"], "seed": int(cfg["seed"]), "overrides": overrides, "authors": authors}
     track = trained_track(cfg)
     if data["algo"] == "value":  # the lookahead model it acts with; query reads the simulator: privileged
-        data["lookahead"] = cfg["algo"]["lookahead"]
+        data["lookahead"], data["net"] = cfg["algo"]["lookahead"], cfg["algo"]["net"]
         if data["lookahead"] in PRIVILEGED_MODELS:
             data["privileged"] = True
     for key, value in (("experiment", experiment), ("track", None if track == "v1" else track), ("link", link),

@@ -23,6 +23,7 @@ from urllib.parse import quote
 import yaml
 
 from crowdbench.envs.protocol import EVAL_SCENES, PROTOCOL_VERSION
+from crowdbench.leaderboard.entries import model_of
 from crowdbench.leaderboard.render import (
     BASELINE_METRICS,
     METRICS,
@@ -170,7 +171,7 @@ class Site:
                 d = next(r["submission"] for r in self.entries[entry] if r["meta"]["submission"] == name)
                 authors = d["authors"] if isinstance(d["authors"], str) else ", ".join(map(str, d["authors"]))
                 rows.append([f'<td data-sort="{e(name)}"><a href="{self.href(entry, anchor=name)}">{e(name)}</a></td>',
-                             *(td(None, x) for x in (entry[0], d["kind"], d.get("encoder", d.get("policy", "—")),
+                             *(td(None, x) for x in (entry[0], d["kind"], model_of(d),
                                                      d.get("algo", "—"), d.get("seed", "—"), authors)),
                              f'<td data-sort="{e(d.get("link", ""))}">{external(d.get("link"))}</td>'])
         head = [(h, h == "seed") for h in ("submission", "entry", "kind", "encoder / policy", "algo", "seed",
