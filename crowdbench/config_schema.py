@@ -274,7 +274,8 @@ class TrainConfig:
     progress_reward: float = 0.1
     human_dropout: float = bounded(0.0, ge=0, le=1)  # a probability
     # imitation warm start before RL (crowdbench/algos/pretrain.py); a resumed run never repeats it
-    pretrain: str | None = bounded(None, choices=("orca",))
+    pretrain: str | None = bounded(None, choices=("orca", "checkpoint"))
+    pretrain_checkpoint: str | None = None  # pretrain=checkpoint: the expert (a value entry: lookahead cv)
     pretrain_frames: int = bounded(20000, ge=1)  # env steps of demonstrations
     pretrain_epochs: int = bounded(3, ge=0)  # passes over the demonstrations, actor and each critic
     pretrain_batch: int = bounded(256, ge=1)

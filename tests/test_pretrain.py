@@ -148,7 +148,7 @@ def test_cli_run_with_warm_start_then_resume(tmp_path):
 def test_bad_pretrain_is_a_one_line_error(tmp_path, capsys):
     assert main(["run", "train.pretrain=foo", f"out={tmp_path / 'run'}"]) == 2
     err = capsys.readouterr().err
-    assert "train.pretrain: must be one of orca (got 'foo')" in err and err.count("\n") == 1
+    assert "train.pretrain: must be one of orca, checkpoint (got 'foo')" in err and err.count("\n") == 1
     assert not (tmp_path / "run").exists()
 
 
@@ -218,3 +218,53 @@ def test_cloning_term_holds_the_actor_near_orca_and_resumes(tmp_path):
     with pytest.raises(ValueError, match="needs train.pretrain=orca"):
         train(compose([*SMALL["td3"], *TINY, "train.pretrain_bc_weight=1", "train.total_frames=64"]), tmp_path / "x",
               progress=False)
+
+
+def teacher_setup(tmp_path, lookahead: str = "cv", *extra):
+    from tests.test_value_leaderboard import value_checkpoint
+
+    path = tmp_path / "teacher.pt"
+    value_checkpoint(path, lookahead)
+    cfg = compose(["env=crowdnav", *SMALL["td3"], "train.pretrain=checkpoint", f"train.pretrain_checkpoint={path}",
+                   "env.batch=4", *extra])
+    torch.manual_seed(0)
+    return cfg, make_env(cfg, progress_reward=cfg.train.progress_reward), path
+
+
+def test_a_value_checkpoint_teaches_from_the_candidates_of_the_state_it_observes(tmp_path):
+    """train.pretrain=checkpoint with a value entry (lookahead cv): each demonstrated action is the greedy
+    action of the candidates computed from the world at the observed step, as the evaluation hands them."""
+    from crowdbench.envs.lookahead import lookahead_observation
+
+    cfg, env, path = teacher_setup(tmp_path)
+    T = 30
+    demos = collect_demonstrations(cfg, env, 4 * T)
+    torch.manual_seed(0)
+    again = make_env(cfg, progress_reward=cfg.train.progress_reward)  # the same episodes, stepped by hand
+    teacher = policy_from_checkpoint(path)
+    model, actions = teacher.lookahead
+    td, want = again.reset(), []
+    for _ in range(T):
+        obs = td.select(OBS).clone()
+        for key, value in lookahead_observation(again.world, actions, model).items():
+            obs.set(OBS + (key,), value)
+        td.set(ACTION, teacher.act(obs))
+        want.append(td[ACTION])
+        td = again.step_and_maybe_reset(td)[1]
+    want = torch.stack(want, 1)  # [B, T, 1, 2]
+    assert torch.equal(demos[ACTION].reshape(want.shape), want)
+    assert len(set(map(tuple, demos[ACTION].reshape(-1, 2).tolist()))) > 3  # it steers, not one fixed action
+
+
+def test_a_privileged_or_mismatched_teacher_is_refused(tmp_path):
+    from crowdbench.algos.pretrain import expert_policy
+
+    cfg, env, _ = teacher_setup(tmp_path, "query")
+    with pytest.raises(ValueError, match="privileged lookahead 'query'"):
+        expert_policy(cfg, env)
+    cfg, env, _ = teacher_setup(tmp_path, "cv", "env.frame=translate")
+    with pytest.raises(ValueError, match="env.frame=rotate"):
+        expert_policy(cfg, env)
+    cfg.train.pretrain_checkpoint = None
+    with pytest.raises(ValueError, match="needs train.pretrain_checkpoint"):
+        expert_policy(cfg, env)

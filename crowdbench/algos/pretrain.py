@@ -30,7 +30,7 @@ from crowdbench.algos.nstep import STEPS, n_step
 from crowdbench.envs.policy import ACTION, GROUP, OBS
 from crowdbench.models.heads import OBS_KEYS
 
-EXPERTS = ("orca",)
+EXPERTS = ("orca", "checkpoint")
 RETURN = (GROUP, "return_to_go")  # discounted, within the agent's episode, no bootstrap
 COMPLETE = (GROUP, "episode_complete")  # the agent's episode ended before the collection did
 EPISODE = (GROUP, "episode")  # an id per agent episode: the held-out split is by episode
@@ -39,12 +39,19 @@ TRANSITION = [OBS, ACTION, ("next", GROUP, "observation"), ("next", GROUP, "rewa
               ("next", GROUP, "terminated")]
 
 
-def expert_policy(cfg):
-    """The ``train.pretrain`` expert with the env's dynamics and the run's ``orca`` section (as ``policy=orca``),
-    in the training env's observation frame."""
+def expert_policy(cfg, env=None):
+    """The ``train.pretrain`` expert in the training env's observation frame: ORCA with the env's dynamics
+    and the run's ``orca`` section (as ``policy=orca``), or the checkpoint ``train.pretrain_checkpoint``
+    acting on ``env`` (crowdbench/algos/teacher.py)."""
     name = cfg.train.pretrain
     if name not in EXPERTS:
         raise ValueError(f"unknown train.pretrain {str(name)[:60]!r}; valid: {', '.join(EXPERTS)}")
+    if name == "checkpoint":
+        from crowdbench.algos.teacher import CheckpointExpert
+
+        if not cfg.train.get("pretrain_checkpoint"):
+            raise ValueError("train.pretrain=checkpoint needs train.pretrain_checkpoint=PATH")
+        return CheckpointExpert(cfg.train.pretrain_checkpoint, env, cfg.env.frame, cfg.env.v_max)
     from crowdbench.baselines.orca import ORCA
     from crowdbench.policies import params
 
@@ -80,7 +87,7 @@ def collect_demonstrations(cfg, env, frames: int, expert=None) -> TensorDict:
     plus :data:`RETURN` (with ``cfg.algo.gamma``), :data:`COMPLETE` and :data:`EPISODE`; n-step
     transitions (with :data:`~crowdbench.algos.nstep.STEPS`) if ``cfg.algo.n_steps > 1``, as the
     replay buffer then holds. Advances ``env``'s episode sampler, as training would."""
-    expert = expert_policy(cfg) if expert is None else expert
+    expert = expert_policy(cfg, env) if expert is None else expert
 
     def act(td):
         td.set(ACTION, expert.act(td.select(OBS)))
