@@ -16,7 +16,7 @@ import pytest
 import torch
 
 from crowdbench.leaderboard import run, wire
-from crowdbench.leaderboard.harness import dummy_obs
+from crowdbench.leaderboard.loading import dummy_obs
 from crowdbench.leaderboard.sandbox import Limits
 from crowdbench.leaderboard.worker import WorkerError, WorkerPolicy
 

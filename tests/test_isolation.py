@@ -182,7 +182,7 @@ def test_two_submissions_with_one_module_name_each_get_their_own(tmp_path):
 
 
 def _obs():
-    from crowdbench.leaderboard.harness import dummy_obs
+    from crowdbench.leaderboard.loading import dummy_obs
 
     return dummy_obs(batch=4, humans=3)
 

@@ -274,7 +274,7 @@ def test_fingerprint_covers_every_module_an_evaluation_loads(tmp_path):
     write_yaml(root, "oracle", "name: oracle\nkind: oracle\nentry: Oracle\nprivileged: true\nauthors: [a]\n")
     # the learned entry's policy is built and run in its worker process: load it here as the worker does
     script = ("import json, sys; from pathlib import Path; from crowdbench.leaderboard import run; "
-              "from crowdbench.leaderboard.harness import dummy_obs, learned_policy; "
+              "from crowdbench.leaderboard.loading import dummy_obs, learned_policy; "
               "from crowdbench.leaderboard.schema import read_submission; "
               f"assert run({str(root)!r}, episodes=1, scenes=['hotel'], log=lambda m: None) == 0; "
               f"learned_policy(read_submission(Path({str(root)!r}) / 'submissions' / 'toy')).act(dummy_obs()); "

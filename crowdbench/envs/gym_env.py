@@ -2,12 +2,12 @@
 
 Observations are the robot's dict (``robot`` [6], ``humans`` [M, 4], ``humans_mask`` [M]) in the
 robot's frame, actions ``[vx, vy]``; the episode ends on success or collision (terminated) or at the
-time limit (truncated). Ids and names: crowdbench/envs/registry.py.
+time limit (truncated). Ids and names, and building one by name: crowdbench/envs/registry.py (``gym_env``).
 """
 
 from __future__ import annotations
 
-from typing import Any, ClassVar
+from typing import ClassVar
 
 import gymnasium
 
@@ -15,14 +15,11 @@ import gymnasium
 class CrowdGymEnv(gymnasium.Env):
     metadata: ClassVar[dict] = {"render_modes": []}
 
-    def __init__(self, name: str = "replay", render_mode: str | None = None, **env: Any):
-        from crowdbench.envs.registry import make
-
-        if name == "selfplay":
+    def __init__(self, parallel):
+        """``parallel``: a one-robot PettingZoo env (crowdbench/envs/pettingzoo_env.py)."""
+        if len(parallel.possible_agents) != 1:
             raise ValueError("the Gymnasium env holds one robot; self-play (n agents): api='pettingzoo' or 'torchrl'")
-        if render_mode is not None:
-            raise ValueError(f"render_mode {render_mode!r} not supported; valid: None")
-        self.parallel = make(name, api="pettingzoo", **env)
+        self.parallel = parallel
         (self.agent,) = self.parallel.possible_agents
         self.observation_space = self.parallel.observation_space(self.agent)
         self.action_space = self.parallel.action_space(self.agent)

@@ -62,11 +62,20 @@ def make(name: str, api: str = "torchrl", seed: int = 0, batch: int = 1, **env):
     if api not in APIS:
         raise ValueError(f"unknown api {api!r}; valid: {', '.join(APIS)}")
     if api == "gymnasium":
-        from crowdbench.envs.gym_env import CrowdGymEnv
-
-        return CrowdGymEnv(name, **env)
+        return gym_env(name, **env)
     cfg = config(name, seed=seed, batch=batch, **env)
     return make_env(cfg) if api == "torchrl" else make_parallel_env(cfg.env)
+
+
+def gym_env(name: str = "replay", render_mode: str | None = None, **env):
+    """The single-robot Gymnasium env of ``name`` (``gymnasium.make``'s entry point)."""
+    from crowdbench.envs.gym_env import CrowdGymEnv
+
+    if name == "selfplay":
+        raise ValueError("the Gymnasium env holds one robot; self-play (n agents): api='pettingzoo' or 'torchrl'")
+    if render_mode is not None:
+        raise ValueError(f"render_mode {render_mode!r} not supported; valid: None")
+    return CrowdGymEnv(make(name, api="pettingzoo", **env))
 
 
 def register_gymnasium() -> None:
@@ -75,7 +84,7 @@ def register_gymnasium() -> None:
 
     for gym_id, name in GYM_IDS.items():
         if gym_id not in gymnasium.registry:
-            gymnasium.register(gym_id, entry_point="crowdbench.envs.gym_env:CrowdGymEnv", kwargs={"name": name},
+            gymnasium.register(gym_id, entry_point="crowdbench.envs.registry:gym_env", kwargs={"name": name},
                                max_episode_steps=None, disable_env_checker=False)
 
 

@@ -218,7 +218,7 @@ class WorkerPolicy(Policy):
 
 # ---------------------------------------------------------------------------------- worker side
 def _serve(read_fd: int, write_fd: int) -> None:
-    from crowdbench.leaderboard.harness import learned_policy
+    from crowdbench.leaderboard.loading import learned_policy
     from crowdbench.leaderboard.schema import SubmissionError, read_submission
 
     header, _ = wire.recv(read_fd)
