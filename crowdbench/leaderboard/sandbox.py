@@ -23,7 +23,6 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-import crowdbench
 from crowdbench.leaderboard import seccomp
 from crowdbench.numerics import PINNED
 
@@ -61,6 +60,7 @@ DEFAULT_LIMITS = Limits()
 
 # hidden from a confined worker: where sockets (ssh-agent, X11, D-Bus, docker, Ray) and other users'
 # temporary files live; the first is the worker's own scratch
+PACKAGE_PARENT = Path(__file__).resolve().parents[2]  # the directory holding this crowdbench package
 MASKED = ("/tmp", "/var/tmp", "/run")
 SCRATCH = "/tmp"
 
@@ -166,7 +166,7 @@ def environment(scratch: Path) -> dict[str, str]:
     """The worker's whole environment: this interpreter's crowdbench, evaluation's numerical path
     (crowdbench/numerics.py, as the harness runs it), one thread, nothing else inherited."""
     env = {"PATH": os.environ.get("PATH", "/usr/bin:/bin"), "HOME": str(scratch), "TMPDIR": str(scratch),
-           "PYTHONPATH": str(Path(crowdbench.__file__).resolve().parents[1]), "PYTHONHASHSEED": "0",
+           "PYTHONPATH": str(PACKAGE_PARENT), "PYTHONHASHSEED": "0",
            "PYTHONDONTWRITEBYTECODE": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
            "RL_WARNINGS": "False", "LANG": "C.UTF-8"}
     env.update({k: os.environ[k] for k in PINNED if k in os.environ})
