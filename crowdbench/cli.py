@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import re
 import sys
 from pathlib import Path
 
@@ -13,95 +12,20 @@ from crowdbench.cli_eval import (  # the evaluation half of the command line
     check_config,
     check_protocol_fixed,
     check_viz,
-    claimed_output,
     eval_options,
     eval_output,
     make_policy,
-    make_probe,
-    output_dir,
     protocol_humans,
     run_crowdnav_eval,
     run_eval,
     run_selfplay_eval,
 )
+from crowdbench.cli_run import run_one
 from crowdbench.cli_submit import cmd_submit
+from crowdbench.compose import CONFIG_DIR, compose, hydra_message, normalise  # noqa: F401 - re-exported
 
-CONFIG_DIR = Path(__file__).resolve().parent / "conf"
 COMMANDS = ("eval", "run", "leaderboard", "submit", "viz", "plot")
 BASELINES = policies.NAMES  # the registry's built-in policies
-
-
-def normalise(overrides: list[str]) -> list[str]:
-    """``+experiment=X`` / ``+method=X`` mean ``experiment=X`` / ``method=X``: both groups are in the
-    defaults list (as null), where Hydra's append syntax would be an error."""
-    return [o[1:] if o.startswith(("+experiment=", "+method=")) else o for o in overrides]
-
-
-def compose(overrides: list[str]):
-    """Compose ``conf/config.yaml`` with Hydra overrides; struct mode rejects unknown keys."""
-    from hydra import compose as hydra_compose
-    from hydra import initialize_config_dir
-    from hydra.errors import HydraException
-    from omegaconf import OmegaConf
-
-    if not CONFIG_DIR.is_dir():
-        raise UsageError(f"config directory not found: {CONFIG_DIR} (install with pip install -e .)")
-    try:
-        with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base=None):
-            cfg = hydra_compose(config_name="config", overrides=normalise(overrides))
-    except HydraException as e:
-        raise UsageError(_hydra_message(e, overrides)) from None
-    OmegaConf.set_struct(cfg, True)
-    return cfg
-
-
-def _hydra_message(err: Exception, overrides: list[str]) -> str:
-    """Turn Hydra's multi-line errors into one line naming the key and the valid choices."""
-    from hydra import compose as hydra_compose
-    from hydra import initialize_config_dir
-    from hydra.errors import HydraException
-    from omegaconf import OmegaConf
-
-    text = " ".join(str(err).split())
-    missing = re.search(r"Could not find '([^/']+)/([^']+)'", text)
-    if missing:
-        group, choice = missing.groups()
-        opts = sorted(p.stem for p in (CONFIG_DIR / group).glob("*.yaml"))
-        return f"unknown {group} {choice!r}; valid choices: {', '.join(opts)}"
-    bad = re.search(r"Could not override '([^']+)'", text) or re.search(r"Key '([^']+)' is not in struct", text)
-    if not bad:
-        unparsed = _ungrammatical(overrides)
-        if unparsed:  # e.g. a non-ASCII path: Hydra's grammar takes it quoted
-            key, _, value = unparsed.partition("=")
-            quoted = value.replace("\\", "\\\\").replace("'", "\\'")
-            return (f"bad override {unparsed!r}: not valid in Hydra's override grammar; quote the value: "
-                    f"\"{key}='{quoted}'\"")
-        return f"bad override: {text}"
-    key = bad.group(1)
-    parent = key.rsplit(".", 1)[0] if "." in key else ""
-    # list the keys of the config the user composed (group choices kept, the bad key dropped)
-    groups = [o for o in overrides if "=" in o and "." not in o.split("=")[0] and o.split("=")[0] != key]
-    try:
-        with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base=None):
-            node = OmegaConf.select(hydra_compose(config_name="config", overrides=groups), parent or "")
-        valid = ", ".join(sorted(node.keys()))
-    except (HydraException, AttributeError):
-        valid = "?"
-    return f"unknown config key {key!r}; valid keys{' under ' + repr(parent) if parent else ''}: {valid}"
-
-
-def _ungrammatical(overrides: list[str]) -> str | None:
-    """The first override Hydra's grammar cannot parse, if any."""
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-    from hydra.errors import HydraException
-
-    parser = OverridesParser.create()
-    for o in normalise(overrides):
-        try:
-            parser.parse_overrides([o])
-        except HydraException:
-            return o
-    return None
 
 
 def cmd_eval(overrides: list[str]) -> int:
@@ -146,63 +70,6 @@ def cmd_run(overrides: list[str]) -> int:
         return multirun([o for o in overrides if o not in ("-m", "--multirun")])
     run_one(compose(overrides), overrides)
     return 0
-
-
-def run_one(cfg, overrides: list[str]) -> dict:
-    """One training run of ``cfg`` into ``cfg.out`` (or a new ``outputs/run-...``), then its evaluation."""
-    import torch
-
-    from crowdbench.algos.checkpoint import policy_from_checkpoint
-    from crowdbench.algos.train import train
-
-    check_config(cfg)  # also each run of a sweep (crowdbench/sweep.py task); cpus >= 1 included
-    torch.set_num_threads(cfg.cpus)
-    eval_options(cfg)
-    check_viz(cfg)
-    if cfg.resume and not cfg.out:
-        raise UsageError("resume=true needs out=<run directory> (the run to continue)")
-    if cfg.algo.name == "value":  # value-based lookahead: its own loop and policy (crowdbench/cli_value.py)
-        from crowdbench.cli_value import run_value
-
-        out = output_dir(cfg, "run", f"value-{cfg.algo.net}-{cfg.algo.lookahead}")
-        with claimed_output(out):
-            try:
-                return run_value(cfg, out, overrides, resume=bool(cfg.resume))
-            except ValueError as e:
-                raise UsageError(str(e)) from None
-            except KeyboardInterrupt:  # deep V-learning wrote its snapshot (algos/value_train.py RESUME_FILE)
-                if not (out / "resume.pt").is_file():
-                    raise Interrupted(f"interrupted during the imitation phase; nothing to resume in {out}") from None
-                raise Interrupted(f"interrupted; resume with: {resume_command(overrides, out)}") from None
-    out = output_dir(cfg, "run", f"{cfg.algo.name}-{cfg.encoder.name}")
-    try:
-        probe = make_probe(cfg)
-    except ValueError as e:
-        raise UsageError(str(e)) from None
-    with claimed_output(out):  # locked until the final evaluation is written; removed if nothing started
-        try:
-            stats = train(cfg, out, resume=bool(cfg.resume), probe=probe)
-            if stats.get("interrupted"):
-                raise Interrupted(f"interrupted at {stats['frames']:,} frames, checkpoint {out / 'checkpoint.pt'}; "
-                                  f"resume with: {resume_command(overrides, out)}")
-            print(f"trained {stats['frames']} frames, {stats['updates']} updates; checkpoint {out / 'checkpoint.pt'}")
-            policy = policy_from_checkpoint(out / "checkpoint.pt")
-        except ValueError as e:  # CheckpointError included: bad checkpoint, bad algo/replay/logger value
-            raise UsageError(str(e)) from None
-        from crowdbench.envs.factory import env_name
-
-        name = env_name(cfg.env)
-        if name == "replay":  # trained with other env.reactive values: evaluated on protocol v2's (the probe too)
-            return run_eval(policy, cfg, out, overrides, strict=False)
-        return {"selfplay": run_selfplay_eval, "crowdnav": run_crowdnav_eval}[name](policy, cfg, out, overrides)
-
-
-def resume_command(overrides: list[str], out: Path) -> str:
-    """The command line that continues the run in ``out`` (the same overrides, ``out=``, ``resume=true``)."""
-    import shlex
-
-    keep = [o for o in overrides if not o.startswith(("out=", "resume=", "-m", "--multirun"))]
-    return shlex.join(["crowdbench", "run", *keep, f"out={out}", "resume=true"])
 
 
 def cmd_leaderboard(args: list[str]) -> int:

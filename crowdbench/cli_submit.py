@@ -180,7 +180,7 @@ def training_overrides(cfg: dict) -> list[str]:
     algo and encoder, as ``key=value`` overrides (the submission records how it was trained)."""
     from omegaconf import OmegaConf
 
-    from crowdbench.cli import compose
+    from crowdbench.compose import compose
 
     base = OmegaConf.to_container(compose([f"algo={cfg['algo']['name']}", f"encoder={cfg['encoder']['name']}"]))
     out = [f"algo={cfg['algo']['name']}", f"encoder={cfg['encoder']['name']}"]

@@ -99,8 +99,8 @@ def hydra_flags(command: str, overrides: list[str]) -> int:
     nothing is trained or evaluated (Hydra prints and returns before calling the task)."""
     import hydra
 
-    from crowdbench.cli import compose, normalise
     from crowdbench.cli_eval import UsageError
+    from crowdbench.compose import compose, normalise
 
     args, what = COMMANDS[command]
     plain = overrides_only(overrides)

@@ -31,7 +31,7 @@ def run_value(cfg, out: Path, overrides: list[str], evaluate=None, resume: bool 
 
 
 def main(argv: list[str] | None = None) -> int:
-    from crowdbench.cli import compose
+    from crowdbench.compose import compose
 
     overrides = ["env=crowdnav", "algo=value", *(sys.argv[1:] if argv is None else argv)]
     cfg = compose(overrides)

@@ -30,7 +30,8 @@ def sweep_jobs(overrides: list[str]) -> tuple[list[list[str]], dict]:
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import HydraException
 
-    from crowdbench.cli import CONFIG_DIR, UsageError, _hydra_message
+    from crowdbench.cli_eval import UsageError
+    from crowdbench.compose import CONFIG_DIR, hydra_message
 
     parser = OverridesParser.create()
     try:
@@ -43,14 +44,14 @@ def sweep_jobs(overrides: list[str]) -> tuple[list[list[str]], dict]:
         task = [o.input_line for o in parsed if not o.is_hydra_override()]
         (jobs,) = BasicSweeper.split_arguments(parser.parse_overrides(params + task), None)
     except HydraException as e:
-        raise UsageError(_hydra_message(e, overrides)) from None
+        raise UsageError(hydra_message(e, overrides)) from None
     return [list(j) for j in jobs], hydra
 
 
 def check_sweep(overrides: list[str], sweep_dir: Path, resume: bool) -> int:
     """Refuse (``UsageError``) a sweep that Hydra would fail part-way or that would overwrite runs in
     ``sweep_dir``; return the number of jobs."""
-    from crowdbench.cli import UsageError
+    from crowdbench.cli_eval import UsageError
 
     jobs, hydra = sweep_jobs(overrides)
     if str(hydra["sweep"].get("subdir")) != JOB_SUBDIR:
@@ -64,7 +65,7 @@ def check_sweep(overrides: list[str], sweep_dir: Path, resume: bool) -> int:
 def check_compositions(jobs: list[list[str]]) -> None:
     """Compose one job per combination of config-group choices (``experiment=a,b``, ``method=...``):
     a missing option or an unknown key is the one-line error of ``crowdbench run``, before any run."""
-    from crowdbench.cli import CONFIG_DIR, compose
+    from crowdbench.compose import CONFIG_DIR, compose
 
     def is_group(o: str) -> bool:
         key = o.split("=", 1)[0].lstrip("+~")
@@ -106,7 +107,7 @@ def finished(job_dir: Path) -> dict | None:
 
 
 def check_job_dirs(sweep_dir: Path, jobs: list[list[str]], resume: bool) -> None:
-    from crowdbench.cli import UsageError
+    from crowdbench.cli_eval import UsageError
 
     if not sweep_dir.is_dir():
         return

@@ -17,7 +17,6 @@ from hydra import compose as hydra_compose
 from hydra import initialize_config_dir
 from omegaconf import OmegaConf
 
-from crowdbench import cli
 from crowdbench.cli import CONFIG_DIR, compose, main
 from crowdbench.config_check import ConfigError, short, unknown_keys, validate, validate_checkpoint
 from crowdbench.config_schema import ALGO_SCHEMAS, ENCODER_SCHEMAS, ENV_SCHEMAS, RootConfig
@@ -116,8 +115,10 @@ def no_work(monkeypatch, tmp_path):
         raise AssertionError("work started before the config was refused")
 
     monkeypatch.setattr(crowdbench.algos.train, "train", started)
+    import crowdbench.cli_run
+
     for name in ("run_eval", "run_selfplay_eval", "run_crowdnav_eval"):
-        monkeypatch.setattr(cli, name, started)
+        monkeypatch.setattr(crowdbench.cli_run, name, started)
     work = tmp_path / "work"
     work.mkdir()
     monkeypatch.chdir(work)
@@ -186,7 +187,9 @@ def test_a_bad_value_in_a_yaml_is_caught(tmp_path, monkeypatch, capsys):
     td3 = (conf / "algo" / "td3.yaml").read_text()
     (conf / "algo" / "td3.yaml").write_text(td3.replace("batch_size: 100", "batch_size: many"))
     (conf / "experiment" / "broken.yaml").write_text("# @package _global_\nenv:\n  v_max: 0.0\n")
-    monkeypatch.setattr(cli, "CONFIG_DIR", conf)
+    import crowdbench.compose
+
+    monkeypatch.setattr(crowdbench.compose, "CONFIG_DIR", conf)
     with pytest.raises(ConfigError, match=r"^algo\.batch_size: must be an integer >= 1 \(got 'many'\)$"):
         validate(compose([]))
     with pytest.raises(ConfigError, match=r"^env\.v_max: must be > 0 \(got 0\.0\)$"):

@@ -360,7 +360,7 @@ def test_a_value_submission_in_a_worker_gives_the_in_process_outcomes(tmp_path):
     model = value_model("cadrl")
     save_checkpoint(sub / "checkpoint.pt", {"config": cfg, "actor": model.net.state_dict(), "frames": 0})
     (sub / "submission.yaml").write_text(f"name: value_s0\nkind: learned\nentry: CADRL (value)\nencoder: "
-                                         f"{cfg['encoder']['name']}\nalgo: value\nlookahead: query\nprivileged: true\n"
+                                         f"{cfg['encoder']['name']}\nalgo: value\nlookahead: query\nnet: cadrl\nprivileged: true\n"
                                          "track: crowdnav-circle5\nauthors: [t]\n")
     short = CrowdNavConfig(time_limit=25)
     local = evaluate_crowdnav(policy_from_checkpoint(sub / "checkpoint.pt"), short, episodes=3)

@@ -1,0 +1,77 @@
+"""``crowdbench run``'s one run: train per the composed config, then evaluate on its protocol (also each
+run of a sweep, crowdbench/sweep.py)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from crowdbench.cli_eval import (
+    Interrupted,
+    UsageError,
+    check_config,
+    check_viz,
+    claimed_output,
+    eval_options,
+    make_probe,
+    output_dir,
+    run_crowdnav_eval,
+    run_eval,
+    run_selfplay_eval,
+)
+
+
+def run_one(cfg, overrides: list[str]) -> dict:
+    """One training run of ``cfg`` into ``cfg.out`` (or a new ``outputs/run-...``), then its evaluation."""
+    import torch
+
+    from crowdbench.algos.checkpoint import policy_from_checkpoint
+    from crowdbench.algos.train import train
+
+    check_config(cfg)  # also each run of a sweep (crowdbench/sweep.py task); cpus >= 1 included
+    torch.set_num_threads(cfg.cpus)
+    eval_options(cfg)
+    check_viz(cfg)
+    if cfg.resume and not cfg.out:
+        raise UsageError("resume=true needs out=<run directory> (the run to continue)")
+    if cfg.algo.name == "value":  # value-based lookahead: its own loop and policy (crowdbench/cli_value.py)
+        from crowdbench.cli_value import run_value
+
+        out = output_dir(cfg, "run", f"value-{cfg.algo.net}-{cfg.algo.lookahead}")
+        with claimed_output(out):
+            try:
+                return run_value(cfg, out, overrides, resume=bool(cfg.resume))
+            except ValueError as e:
+                raise UsageError(str(e)) from None
+            except KeyboardInterrupt:  # deep V-learning wrote its snapshot (algos/value_train.py RESUME_FILE)
+                if not (out / "resume.pt").is_file():
+                    raise Interrupted(f"interrupted during the imitation phase; nothing to resume in {out}") from None
+                raise Interrupted(f"interrupted; resume with: {resume_command(overrides, out)}") from None
+    out = output_dir(cfg, "run", f"{cfg.algo.name}-{cfg.encoder.name}")
+    try:
+        probe = make_probe(cfg)
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+    with claimed_output(out):  # locked until the final evaluation is written; removed if nothing started
+        try:
+            stats = train(cfg, out, resume=bool(cfg.resume), probe=probe)
+            if stats.get("interrupted"):
+                raise Interrupted(f"interrupted at {stats['frames']:,} frames, checkpoint {out / 'checkpoint.pt'}; "
+                                  f"resume with: {resume_command(overrides, out)}")
+            print(f"trained {stats['frames']} frames, {stats['updates']} updates; checkpoint {out / 'checkpoint.pt'}")
+            policy = policy_from_checkpoint(out / "checkpoint.pt")
+        except ValueError as e:  # CheckpointError included: bad checkpoint, bad algo/replay/logger value
+            raise UsageError(str(e)) from None
+        from crowdbench.envs.factory import env_name
+
+        name = env_name(cfg.env)
+        if name == "replay":  # trained with other env.reactive values: evaluated on protocol v2's (the probe too)
+            return run_eval(policy, cfg, out, overrides, strict=False)
+        return {"selfplay": run_selfplay_eval, "crowdnav": run_crowdnav_eval}[name](policy, cfg, out, overrides)
+
+
+def resume_command(overrides: list[str], out: Path) -> str:
+    """The command line that continues the run in ``out`` (the same overrides, ``out=``, ``resume=true``)."""
+    import shlex
+
+    keep = [o for o in overrides if not o.startswith(("out=", "resume=", "-m", "--multirun"))]
+    return shlex.join(["crowdbench", "run", *keep, f"out={out}", "resume=true"])
