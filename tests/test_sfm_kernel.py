@@ -13,8 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from crowdbench.envs.humans import fdlibm, sfm, sfm_kernel
-from crowdbench.envs.humans.numba_runtime import OPTIONS
+from crowdbench.envs.humans import sfm, sfm_kernel
 from crowdbench.envs.humans.sfm import SFMParams
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -60,6 +59,17 @@ def test_agrees_with_the_torch_model(kind, dtype):
     for i, (r, params) in enumerate([(0, SFMParams()), (2, SFMParams()), (2, SFMParams(body_strength=0.0))]):
         dev, same = deviation(dtype, kind, r, params, seed=10 * KINDS.index(kind) + i)
         assert dev <= BOUND, f"{kind} r={r}: {dev:.1f} eps from torch ({same:.0%} of the velocities equal)"
+
+
+def test_standing_humans_on_a_lattice():
+    # equal coordinates and zero velocities: the pairs the kernel computes both ways (a zero difference keeps
+    # its sign); against torch in float64 and float32
+    lat = torch.stack(torch.meshgrid(torch.arange(4.0), torch.arange(4.0), indexing="ij"), -1).reshape(1, 16, 2)
+    for dtype in (torch.float64, torch.float32):
+        args = (lat.to(dtype), torch.zeros(1, 16, 2, dtype=dtype), lat.flip(1).to(dtype), torch.ones(1, 16, dtype=bool),
+                0.3, 1.0)
+        ours, ref = sfm_kernel.social_force_velocities(*args, dt=0.25), sfm.social_force_velocities(*args, dt=0.25)
+        assert float((ours - ref).abs().max()) <= BOUND * torch.finfo(dtype).eps
 
 
 def test_hand_values():
@@ -110,7 +120,8 @@ def test_every_step_of_a_crowdnav_crowd_agrees():
 def test_exp_and_atan2_within_one_ulp_of_math():
     import numba
 
-    exp, atan2 = fdlibm.compiled(OPTIONS)
+    sfm_kernel._compile()
+    exp, atan2 = sfm_kernel.fd_exp, sfm_kernel.fd_atan2
 
     @numba.njit
     def run(xs, ys, e, a):
