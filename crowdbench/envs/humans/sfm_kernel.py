@@ -16,7 +16,7 @@ docs/humans.md, tested in tests/test_sfm_kernel.py). So ``env.sfm_backend`` defa
 committed number depends on this kernel; reactive replay (the v2-sfm track) always uses the torch model.
 
 Bit-identical on every x86 CPU: no ``fastmath`` (no FMA contraction, no reassociation) and no C library
-function but ``sqrt`` (correctly rounded) and ``ldexp`` (exact); glibc's ``exp``/``atan2`` are avoided
+function but ``sqrt`` (correctly rounded) and ``floor`` (exact); glibc's ``exp``/``atan2`` are avoided
 because glibc picks their FMA or non-FMA variant by the CPU. The tests compile the kernel for a generic
 x86-64 and for the host in two processes and require the same bytes.
 """
@@ -39,20 +39,20 @@ ONE, EPS, TAU, GOAL_THR, SPEED_F, NEG_A, LAM, GAMMA, N2, NP2, BODY_S, BODY_R, DT
 
 
 # ---------------------------------------------------------------------------------------------------
-# exp and atan2 in plain double arithmetic: fdlibm's algorithms and coefficients (e_exp.c, s_atan.c,
-# e_atan2.c of Sun's freely distributable fdlibm 5.3, as in Java's StrictMath). Not the C library's: glibc
-# picks an FMA or a non-FMA variant by the CPU it runs on, so the same machine code would give different
-# last bits on different x86 CPUs; these use only + - * /, comparisons and ldexp (exact), so compiled
-# without fastmath they give the same bytes everywhere. Under one ulp (tests/test_sfm_kernel.py, against
-# Python's math on ~900,000 arguments each). The reductions' thresholds are the doubles fdlibm's
-# high-word tests stand for (fdlibm compares 32 bits only; either way within one ulp). In this file, not
-# a module of their own: numba's cache tracks only the file of the function it compiles.
+# exp and atan2 in plain double arithmetic, branch-free (so that the pair loop vectorises), from fdlibm's
+# algorithms and coefficients (e_exp.c, s_atan.c of Sun's freely distributable fdlibm 5.3, as in Java's
+# StrictMath). Not the C library's: glibc picks an FMA or a non-FMA variant by the CPU it runs on, so the
+# same machine code would give different last bits on different x86 CPUs; these use only + - * /,
+# comparisons, floor and a table of powers of two, so compiled without fastmath they give the same bytes
+# everywhere. Within one ulp (tests/test_sfm_kernel.py, against Python's math on ~900,000 arguments
+# each). In this file, not a module of their own: numba's cache tracks only the file of the function it
+# compiles.
 
 LN2_HI, LN2_LO = 6.93147180369123816490e-01, 1.90821492927058770002e-10
 INV_LN2 = 1.44269504088896338700e00
 P1, P2, P3 = 1.66666666666666019037e-01, -2.77777777770155933842e-03, 6.61375632143793436117e-05
 P4, P5 = -1.65339022054652515390e-06, 4.13813679705723846039e-08
-EXP_MAX, EXP_MIN = 7.09782712893383973096e02, -7.45133219101941108420e02
+EXP_MAX = 7.09782712893383973096e02
 
 ATAN_HI = (4.63647609000806093515e-01, 7.85398163397448278999e-01, 9.82793723247329054082e-01,
            1.57079632679489655800e00)
@@ -65,77 +65,49 @@ AT = (3.33333333333329318027e-01, -1.99999999998764832476e-01, 1.428571427250346
 PI, PI_LO = 3.1415926535897931160e00, 1.2246467991473531772e-16
 
 
-def fd_exp(x: float) -> float:
-    """e ** x (fdlibm ``__ieee754_exp``): x = k ln2 + r, |r| <= ln2 / 2, a rational approximation of e^r
-    in r, then 2^k exactly."""
-    if math.isnan(x):
-        return x
-    if x > EXP_MAX:
-        return math.inf
-    if x < EXP_MIN:
-        return 0.0
-    ax = abs(x)
-    if ax < 3.725290298461914e-09:  # 2^-28
-        return 1.0 + x
-    k, hi, lo = 0, x, 0.0
-    if ax > 0.34657359027997264:  # ln2 / 2
-        if ax < 1.0397207708399179:  # 3 ln2 / 2
-            k = 1 if x > 0 else -1
-            hi = x - LN2_HI if x > 0 else x + LN2_HI
-            lo = LN2_LO if x > 0 else -LN2_LO
-        else:
-            k = int(INV_LN2 * x + (0.5 if x > 0 else -0.5))
-            t = float(k)
-            hi = x - t * LN2_HI  # exact
-            lo = t * LN2_LO
-        x = hi - lo
-    t = x * x
-    c = x - t * (P1 + t * (P2 + t * (P3 + t * (P4 + t * P5))))
-    if k == 0:
-        return 1.0 - ((x * c) / (c - 2.0) - x)
-    return math.ldexp(1.0 - ((lo - (x * c) / (2.0 - c)) - hi), k)
+PIO2_HI, PIO2_LO = ATAN_HI[3], ATAN_LO[3]
+POW2 = np.ldexp(1.0, np.arange(-1022, 1024))  # 2^k, k = -1022 .. 1023 (exact)
 
 
-def fd_atan(x: float) -> float:
-    """arctan(x) for x >= 0 (fdlibm ``atan``): reduced onto |t| < 7/16 around atan(0.5), atan(1), atan(1.5)
-    or infinity, then an odd polynomial in t split into even and odd parts."""
-    if x >= 7.378697629483821e19:  # 2^66
-        return ATAN_HI[3] + ATAN_LO[3]
-    i = -1
-    if x < 0.4375:
-        if x < 1.862645149230957e-09:  # 2^-29
-            return x
-    elif x < 1.1875:
-        if x < 0.6875:
-            i, x = 0, (2.0 * x - 1.0) / (2.0 + x)
-        else:
-            i, x = 1, (x - 1.0) / (x + 1.0)
-    elif x < 2.4375:
-        i, x = 2, (x - 1.5) / (1.0 + 1.5 * x)
-    else:
-        i, x = 3, -1.0 / x
-    z = x * x
+def fd_exp(x):
+    """e ** x, branch-free (fdlibm's reduction and rational approximation): k = floor(x / ln2 + 1/2),
+    r = x - k ln2 in two parts, then 2^k from a table. 0 below -708 (the exact value is < 3.3e-308), inf
+    above 709.78; NaN propagates."""
+    xc = min(max(x, -708.0), 709.0)
+    scale = 0.0 if x < -708.0 else (math.inf if x > EXP_MAX else 1.0)
+    k = np.floor(xc * INV_LN2 + 0.5)
+    hi = xc - k * LN2_HI
+    lo = k * LN2_LO
+    r = hi - lo
+    t = r * r
+    c = r - t * (P1 + t * (P2 + t * (P3 + t * (P4 + t * P5))))
+    y = 1.0 - ((lo - (r * c) / (2.0 - c)) - hi)
+    return y * POW2[np.int64(k) + 1022] * scale + (x - x)
+
+
+def fd_atan2(y, x):
+    """The angle of (x, y) in [-pi, pi], branch-free: atan of min/max(|x|, |y|) in [0, 1] by fdlibm's
+    reduction (around atan(0.5) and atan(1)) and polynomial, then pi/2 - a if |y| > |x|, pi - a if x < 0
+    (or -0), with y's sign. Signed zeros as C's atan2."""
+    ax, ay = abs(x), abs(y)
+    swap = ay > ax
+    num, den = min(ax, ay), max(ax, ay)
+    t = num / den if den > 0.0 else 0.0
+    id0 = (t >= 0.4375) & (t < 0.6875)
+    id1 = t >= 0.6875
+    u = (2.0 * t - 1.0 if id0 else (t - 1.0 if id1 else t)) / (2.0 + t if id0 else (t + 1.0 if id1 else 1.0))
+    hi = ATAN_HI[0] if id0 else (ATAN_HI[1] if id1 else 0.0)
+    lo = ATAN_LO[0] if id0 else (ATAN_LO[1] if id1 else 0.0)
+    z = u * u
     w = z * z
     s1 = z * (AT[0] + w * (AT[2] + w * (AT[4] + w * (AT[6] + w * (AT[8] + w * AT[10])))))
     s2 = w * (AT[1] + w * (AT[3] + w * (AT[5] + w * (AT[7] + w * AT[9]))))
-    if i < 0:
-        return x - x * (s1 + s2)
-    return ATAN_HI[i] - ((x * (s1 + s2) - ATAN_LO[i]) - x)
-
-
-def fd_atan2(y: float, x: float) -> float:
-    """The angle of (x, y) in [-pi, pi] (fdlibm ``__ieee754_atan2`` for finite arguments, signed zeros
-    as C's: atan2(+-0, -0 or x < 0) = +-pi, atan2(+-0, +0 or x > 0) = +-0)."""
-    if y == 0.0:
-        if x > 0.0 or (x == 0.0 and math.copysign(1.0, x) > 0.0):
-            return y
-        return math.copysign(PI, y)
-    if x == 0.0:
-        return math.copysign(ATAN_HI[3], y)
-    z = fd_atan(abs(y / x))
-    if x > 0.0:
-        return math.copysign(z, y)
-    return math.copysign(PI - (z - PI_LO), y)
+    a = hi - ((u * (s1 + s2) - lo) - u)
+    a = PIO2_HI - (a - PIO2_LO) if swap else a
+    # x < 0, or x = -0 with y = +-0 (atan2(+-0, -0) = +-pi; atan2(y, -0) = +-pi/2 as for +0)
+    neg = (x < 0.0) | ((x == 0.0) & (y == 0.0) & (math.copysign(1.0, x) < 0.0))
+    a = PI - (a - PI_LO) if neg else a
+    return math.copysign(a, y)
 
 
 def constants(params: SFMParams, dt: float, dtype) -> np.ndarray:
@@ -223,26 +195,67 @@ def _human(w, i, pos, vel, goal, valid, rad, vpref, opos, ovel, ovalid, orad, c,
     return nx * scale, ny * scale
 
 
-def _pairs(w, pos, vel, valid, c, pair, s):
+def _block(px, py, lvx, lvy, q, n, c, r):
+    """:func:`_pair` on a human at ``(px, py)`` from the ``n`` sources ``q[0:4, k]`` (x, y, lambda vx,
+    lambda vy), the same operations with the same roundings (each stored in a row of ``r``, of the
+    inputs' type, as :func:`_pair` stores into its scratch); branch-free, so LLVM can vectorise the loop.
+    The forces go to ``r[6], r[7]``."""
+    for k in range(n):
+        ex, ey = q[0, k] - px, q[1, k] - py
+        exd, eyd = np.float64(ex), np.float64(ey)
+        r[0, k] = np.sqrt(exd * exd + eyd * eyd)
+        d = r[0, k]
+        inv = c[ONE] / max(d, c[EPS])
+        ex, ey = ex * inv, ey * inv
+        dx = (lvx - q[2, k]) + ex
+        dy = (lvy - q[3, k]) + ey
+        dxd, dyd = np.float64(dx), np.float64(dy)
+        r[1, k] = np.sqrt(dxd * dxd + dyd * dyd)
+        d_len = r[1, k]
+        r[2, k] = fd_atan2(np.float64(dx * ey - dy * ex), np.float64(dx * ex + dy * ey))
+        theta = r[2, k]
+        b = max(c[GAMMA] * d_len, c[EPS])
+        neg_dist = -d / b
+        bt = b * theta
+        bt2 = bt * bt
+        w = (c[ONE] / max(d_len, c[EPS])) * c[NEG_A]
+        r[3, k] = fd_exp(np.float64(neg_dist - c[NP2] * bt2))
+        r[4, k] = fd_exp(np.float64(neg_dist - c[N2] * bt2))
+        along = w * r[3, k]
+        sg = c[ONE] if theta > 0 else (-c[ONE] if theta < 0 else theta * c[ONE])
+        turn = w * sg * r[4, k]
+        r[6, k] = along * dx - turn * dy
+        r[7, k] = along * dy + turn * dx
+
+
+def _pairs(w, pos, vel, valid, c, pair, q, r, idx, s):
     """Moussaid's force between every two present humans of world ``w`` into ``pair`` (``pair[i, j]``: on
-    ``i`` from ``j``). ``pair[j, i] = -pair[i, j]`` is what :func:`_pair` computes for ``(j, i)`` when the
-    two differ in both coordinates: every difference it takes changes sign (``a - b = -(b - a)``), so the
-    distances, ``|D|``, the angle's cross and dot products (products of two negated factors) and the
-    exponentials are the same, and the force is negated: half the pairs to compute. Where a coordinate
-    difference is zero (its sign does not flip: ``+0`` both ways), ``(j, i)`` is computed as well."""
-    for i in range(pos.shape[1]):
+    ``i`` from ``j``), human ``i``'s sources ``j > i`` as one block (:func:`_block`). ``pair[j, i] =
+    -pair[i, j]`` is what :func:`_pair` computes for ``(j, i)`` when the two differ in both coordinates:
+    every difference it takes changes sign (``a - b = -(b - a)``), so the distances, ``|D|``, the angle's
+    cross and dot products (products of two negated factors) and the exponentials are the same, and the
+    force is negated: half the pairs to compute. Where a coordinate difference is zero (its sign does not
+    flip: ``+0`` both ways), ``(j, i)`` is computed as well."""
+    m = pos.shape[1]
+    for i in range(m):
         if not valid[w, i]:
             continue
         px, py, lvx, lvy = pos[w, i, 0], pos[w, i, 1], c[LAM] * vel[w, i, 0], c[LAM] * vel[w, i, 1]
-        for j in range(i + 1, pos.shape[1]):
+        n = 0
+        for j in range(i + 1, m):
             if valid[w, j]:
-                qx, qy, lqx, lqy = pos[w, j, 0], pos[w, j, 1], c[LAM] * vel[w, j, 0], c[LAM] * vel[w, j, 1]
-                fx, fy = _pair(px, py, lvx, lvy, qx, qy, lqx, lqy, c, s)
-                pair[i, j, 0], pair[i, j, 1] = fx, fy
-                if qx != px and qy != py:
-                    pair[j, i, 0], pair[j, i, 1] = -fx, -fy
-                else:
-                    pair[j, i, 0], pair[j, i, 1] = _pair(qx, qy, lqx, lqy, px, py, lvx, lvy, c, s)
+                idx[n] = j
+                q[0, n], q[1, n], q[2, n], q[3, n] = pos[w, j, 0], pos[w, j, 1], c[LAM] * vel[w, j, 0], \
+                    c[LAM] * vel[w, j, 1]
+                n += 1
+        _block(px, py, lvx, lvy, q, n, c, r)
+        for k in range(n):
+            j = idx[k]
+            pair[i, j, 0], pair[i, j, 1] = r[6, k], r[7, k]
+            if q[0, k] != px and q[1, k] != py:
+                pair[j, i, 0], pair[j, i, 1] = -r[6, k], -r[7, k]
+            else:
+                pair[j, i, 0], pair[j, i, 1] = _pair(q[0, k], q[1, k], q[2, k], q[3, k], px, py, lvx, lvy, c, s)
 
 
 def _solve(pos, vel, goal, valid, rad, vpref, opos, ovel, ovalid, orad, c, body, out):
@@ -251,7 +264,8 @@ def _solve(pos, vel, goal, valid, rad, vpref, opos, ovel, ovalid, orad, c, body,
     for w in _prange(pos.shape[0]):
         s = np.empty(1, c.dtype)
         pair = np.empty((m, m, 2), c.dtype)
-        _pairs(w, pos, vel, valid, c, pair, s)
+        q, r, idx = np.empty((4, m), c.dtype), np.empty((8, m), c.dtype), np.empty(m, np.int64)
+        _pairs(w, pos, vel, valid, c, pair, q, r, idx, s)
         for i in range(m):
             if valid[w, i]:
                 out[w, i, 0], out[w, i, 1] = _human(w, i, pos, vel, goal, valid, rad, vpref, opos, ovel, ovalid,
@@ -267,7 +281,7 @@ def _compile():
         numba = numba_module()
         _prange = numba.prange
         g = globals()
-        for name in ("fd_exp", "fd_atan", "fd_atan2", "_hyp", "_rexp", "_sign", "_pair", "_pairs", "_human"):
+        for name in ("fd_exp", "fd_atan2", "_hyp", "_rexp", "_sign", "_pair", "_block", "_pairs", "_human"):
             g[name] = numba.njit(**OPTIONS)(g[name])
         _kernel = numba.njit(parallel=True, **OPTIONS)(_solve)
     return _kernel
