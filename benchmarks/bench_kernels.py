@@ -3,8 +3,8 @@ other processes sharing the machine, unlike wall-clock env-steps/s (benchmarks/b
 
 States: CrowdNav circle crossing, B worlds of M humans (M <= 20: CrowdNav test cases; 50: an even ring,
 as bench_crowd.py) after ``--warm`` steps of the torch model, robot visible and standing at its start.
-Per model and backend: the minimum CPU time of one call of the velocity function over ``--reps`` calls,
-as ms per call and as env-steps per CPU-second (B / time). The load average is printed beside each row.
+Per model and backend: the minimum CPU time of one call of the velocity function over ``--reps`` calls
+(the two backends alternating), as ms per call and as env-steps per CPU-second (B / time). The load average is printed beside each row.
 
     python benchmarks/bench_kernels.py [--batch 1024] [--n-humans 20,50] [--reps 10]
 """
@@ -35,18 +35,27 @@ def crowd_state(model: str, n_humans: int, batch: int, warm: int):
     return world
 
 
-def cpu_per_call(world, model: str, backend: str, reps: int) -> float:
+def _use(world, model: str, backend: str) -> None:
     crowd = world.crowd
     if model == "orca":
         crowd.params = type(crowd.params)(**{**crowd.params.__dict__, "backend": backend})
     else:
         crowd.backend = backend
-    crowd.velocities(world)  # compile / load the cache
-    best = float("inf")
+
+
+def cpu_per_call(world, model: str, reps: int) -> dict[str, float]:
+    """Minimum CPU time of one call per backend, the backends alternating call by call (so that a change
+    of the machine's load hits both alike)."""
+    best = {"numba": float("inf"), "torch": float("inf")}
+    for backend in best:  # compile / load the cache, warm up
+        _use(world, model, backend)
+        world.crowd.velocities(world)
     for _ in range(reps):
-        t = time.process_time()
-        crowd.velocities(world)
-        best = min(best, time.process_time() - t)
+        for backend in ("numba", "torch"):
+            _use(world, model, backend)
+            t = time.process_time()
+            world.crowd.velocities(world)
+            best[backend] = min(best[backend], time.process_time() - t)
     return best
 
 
@@ -66,7 +75,7 @@ def main() -> None:
     for model in args.models.split(","):
         for n in (int(x) for x in args.n_humans.split(",")):
             world = crowd_state(model, n, args.batch, args.warm)
-            t = {be: cpu_per_call(world, model, be, args.reps) for be in ("torch", "numba")}
+            t = cpu_per_call(world, model, args.reps)
             for be in ("numba", "torch"):
                 print(f"| {model} | {n} | {be} | {t[be] * 1e3:.1f} | {args.batch / t[be]:,.0f} | "
                       f"{t['torch'] / t[be]:.2f}x | {os.getloadavg()[0]:.1f} |", flush=True)

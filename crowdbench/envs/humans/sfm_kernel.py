@@ -32,6 +32,7 @@ from crowdbench.envs.humans.numba_runtime import LOCK, OPTIONS, numba_module, se
 from crowdbench.envs.humans.sfm import _EPS, SFMParams
 
 _kernel = None
+CHUNK = 16  # worlds per parallel task (scratch arrays are made per task)
 _prange = range  # numba.prange once compiled (see _compile)
 
 # slots of the constants vector (one array of the inputs' float type)
@@ -158,9 +159,9 @@ def _pair(px, py, lvx, lvy, sx, sy, lsvx, lsvy, c, s):
     return along * dx - turn * dy, along * dy + turn * dx
 
 
-def _human(w, i, pos, vel, goal, valid, rad, vpref, opos, ovel, ovalid, orad, c, body, pair, s):
-    """Human ``i`` of world ``w``: its new velocity (social_force_velocities); ``pair[i, j]``: the force of
-    human ``j`` on ``i`` (:func:`_pairs`)."""
+def _human(w, i, pos, goal, valid, rad, vpref, opos, ovalid, orad, c, body, pair, rob, vel, s):
+    """Human ``i`` of world ``w``: its new velocity (social_force_velocities) from Moussaid's forces on it,
+    ``pair[i, j]`` from the humans and ``rob[i, k]`` from the bodies (:func:`_pairs`), summed in index order."""
     px, py, vx, vy = pos[w, i, 0], pos[w, i, 1], vel[w, i, 0], vel[w, i, 1]
     tx, ty = goal[w, i, 0] - px, goal[w, i, 1] - py
     dist = _hyp(tx, ty, s)
@@ -170,16 +171,13 @@ def _human(w, i, pos, vel, goal, valid, rad, vpref, opos, ovel, ovalid, orad, c,
         g = max(dist, c[EPS])
         dsx, dsy = tx / g * vpref[w, i], ty / g * vpref[w, i]
     fx, fy = (dsx - vx) / c[TAU], (dsy - vy) / c[TAU]
-    lvx, lvy = c[LAM] * vx, c[LAM] * vy
     mx, my = zero, zero
     for j in range(pos.shape[1]):
         if j != i and valid[w, j]:
             mx, my = mx + pair[i, j, 0], my + pair[i, j, 1]
-    for r in range(opos.shape[1]):
-        if ovalid[w, r]:
-            ax, ay = _pair(px, py, lvx, lvy, opos[w, r, 0], opos[w, r, 1], c[LAM] * ovel[w, r, 0],
-                           c[LAM] * ovel[w, r, 1], c, s)
-            mx, my = mx + ax, my + ay
+    for k in range(opos.shape[1]):
+        if ovalid[w, k]:
+            mx, my = mx + rob[i, k, 0], my + rob[i, k, 1]
     fx, fy = fx + mx, fy + my
     if body:
         bx, by = zero, zero
@@ -228,14 +226,14 @@ def _block(px, py, lvx, lvy, q, n, c, r):
         r[7, k] = along * dy + turn * dx
 
 
-def _pairs(w, pos, vel, valid, c, pair, q, r, idx, s):
-    """Moussaid's force between every two present humans of world ``w`` into ``pair`` (``pair[i, j]``: on
-    ``i`` from ``j``), human ``i``'s sources ``j > i`` as one block (:func:`_block`). ``pair[j, i] =
-    -pair[i, j]`` is what :func:`_pair` computes for ``(j, i)`` when the two differ in both coordinates:
-    every difference it takes changes sign (``a - b = -(b - a)``), so the distances, ``|D|``, the angle's
-    cross and dot products (products of two negated factors) and the exponentials are the same, and the
-    force is negated: half the pairs to compute. Where a coordinate difference is zero (its sign does not
-    flip: ``+0`` both ways), ``(j, i)`` is computed as well."""
+def _pairs(w, pos, vel, valid, opos, ovel, ovalid, c, pair, rob, q, r, idx, s):
+    """Moussaid's forces in world ``w``: ``pair[i, j]`` on human ``i`` from human ``j``, ``rob[i, k]`` on
+    ``i`` from body ``k``; human ``i``'s sources (humans ``j > i``, then the bodies) as one block
+    (:func:`_block`). ``pair[j, i] = -pair[i, j]`` is what :func:`_pair` computes for ``(j, i)`` when the
+    two differ in both coordinates: every difference it takes changes sign (``a - b = -(b - a)``), so the
+    distances, ``|D|``, the angle's cross and dot products (products of two negated factors) and the
+    exponentials are the same, and the force is negated: half the pairs to compute. Where a coordinate
+    difference is zero (its sign does not flip: ``+0`` both ways), ``(j, i)`` is computed as well."""
     m = pos.shape[1]
     for i in range(m):
         if not valid[w, i]:
@@ -248,9 +246,18 @@ def _pairs(w, pos, vel, valid, c, pair, q, r, idx, s):
                 q[0, n], q[1, n], q[2, n], q[3, n] = pos[w, j, 0], pos[w, j, 1], c[LAM] * vel[w, j, 0], \
                     c[LAM] * vel[w, j, 1]
                 n += 1
+        for k in range(opos.shape[1]):
+            if ovalid[w, k]:
+                idx[n] = -1 - k
+                q[0, n], q[1, n], q[2, n], q[3, n] = opos[w, k, 0], opos[w, k, 1], c[LAM] * ovel[w, k, 0], \
+                    c[LAM] * ovel[w, k, 1]
+                n += 1
         _block(px, py, lvx, lvy, q, n, c, r)
         for k in range(n):
             j = idx[k]
+            if j < 0:
+                rob[i, -1 - j, 0], rob[i, -1 - j, 1] = r[6, k], r[7, k]
+                continue
             pair[i, j, 0], pair[i, j, 1] = r[6, k], r[7, k]
             if q[0, k] != px and q[1, k] != py:
                 pair[j, i, 0], pair[j, i, 1] = -r[6, k], -r[7, k]
@@ -258,20 +265,23 @@ def _pairs(w, pos, vel, valid, c, pair, q, r, idx, s):
                 pair[j, i, 0], pair[j, i, 1] = _pair(q[0, k], q[1, k], q[2, k], q[3, k], px, py, lvx, lvy, c, s)
 
 
-def _solve(pos, vel, goal, valid, rad, vpref, opos, ovel, ovalid, orad, c, body, out):
-    """Every world (prange): ``out[w]`` = the humans' new velocities, zeros where absent."""
-    m = pos.shape[1]
-    for w in _prange(pos.shape[0]):
+def _solve(pos, vel, goal, valid, rad, vpref, opos, ovel, ovalid, orad, c, body, chunk, out):
+    """Every world, in chunks of ``chunk`` worlds (prange; the scratch arrays are made once per chunk):
+    ``out[w]`` = the humans' new velocities, zeros where absent."""
+    n, m = pos.shape[0], pos.shape[1]
+    for ch in _prange((n + chunk - 1) // chunk):
         s = np.empty(1, c.dtype)
-        pair = np.empty((m, m, 2), c.dtype)
-        q, r, idx = np.empty((4, m), c.dtype), np.empty((8, m), c.dtype), np.empty(m, np.int64)
-        _pairs(w, pos, vel, valid, c, pair, q, r, idx, s)
-        for i in range(m):
-            if valid[w, i]:
-                out[w, i, 0], out[w, i, 1] = _human(w, i, pos, vel, goal, valid, rad, vpref, opos, ovel, ovalid,
-                                                    orad, c, body, pair, s)
-            else:
-                out[w, i, 0], out[w, i, 1] = 0, 0
+        k = m + opos.shape[1]
+        pair, rob = np.empty((m, m, 2), c.dtype), np.empty((m, opos.shape[1], 2), c.dtype)
+        q, r, idx = np.empty((4, k), c.dtype), np.empty((8, k), c.dtype), np.empty(k, np.int64)
+        for w in range(ch * chunk, min(n, (ch + 1) * chunk)):
+            _pairs(w, pos, vel, valid, opos, ovel, ovalid, c, pair, rob, q, r, idx, s)
+            for i in range(m):
+                if valid[w, i]:
+                    out[w, i, 0], out[w, i, 1] = _human(w, i, pos, goal, valid, rad, vpref, opos, ovalid, orad, c,
+                                                        body, pair, rob, vel, s)
+                else:
+                    out[w, i, 0], out[w, i, 1] = 0, 0
 
 
 def _compile():
@@ -320,7 +330,7 @@ def social_force_velocities(pos, vel, goal, valid, radius, v_pref, *, dt: float,
             _field(radius, (n, m), dtype), _field(v_pref, (n, m), dtype), _arr(others_pos, dtype),
             _arr(others_vel, dtype), np.ascontiguousarray(others_valid.expand(n, r).numpy()),
             _field(0.0 if others_radius is None else others_radius, (n, r), dtype),
-            constants(params, dt, dtype), body, out)
+            constants(params, dt, dtype), body, CHUNK, out)
     with LOCK:
         kernel(*args)
     return torch.from_numpy(out).to(pos.dtype)
