@@ -193,20 +193,21 @@ def _human(w, i, pos, goal, valid, rad, vpref, opos, ovalid, orad, c, body, pair
     return nx * scale, ny * scale
 
 
-def _block(px, py, lvx, lvy, q, n, c, r):
-    """:func:`_pair` on a human at ``(px, py)`` from the ``n`` sources ``q[0:4, k]`` (x, y, lambda vx,
-    lambda vy), the same operations with the same roundings (each stored in a row of ``r``, of the
-    inputs' type, as :func:`_pair` stores into its scratch); branch-free, so LLVM can vectorise the loop.
-    The forces go to ``r[6], r[7]``."""
+def _block(p, q, n, c, r):
+    """:func:`_pair` for the ``n`` pairs ``k``: on a human ``p[0:4, k]`` (x, y, lambda vx, lambda vy) from a
+    source ``q[0:4, k]``, the same operations with the same roundings (each stored in a row of ``r``, of the
+    inputs' type, as :func:`_pair` stores into its scratch); branch-free and long (all of a world's pairs),
+    so LLVM vectorises the loop. The forces go to ``r[6], r[7]``."""
     for k in range(n):
+        px, py = p[0, k], p[1, k]
         ex, ey = q[0, k] - px, q[1, k] - py
         exd, eyd = np.float64(ex), np.float64(ey)
         r[0, k] = np.sqrt(exd * exd + eyd * eyd)
         d = r[0, k]
         inv = c[ONE] / max(d, c[EPS])
         ex, ey = ex * inv, ey * inv
-        dx = (lvx - q[2, k]) + ex
-        dy = (lvy - q[3, k]) + ey
+        dx = (p[2, k] - q[2, k]) + ex
+        dy = (p[3, k] - q[3, k]) + ey
         dxd, dyd = np.float64(dx), np.float64(dy)
         r[1, k] = np.sqrt(dxd * dxd + dyd * dyd)
         d_len = r[1, k]
@@ -226,43 +227,46 @@ def _block(px, py, lvx, lvy, q, n, c, r):
         r[7, k] = along * dy + turn * dx
 
 
-def _pairs(w, pos, vel, valid, opos, ovel, ovalid, c, pair, rob, q, r, idx, s):
+def _load(p, n, x, y, vx, vy, lam):
+    p[0, n], p[1, n], p[2, n], p[3, n] = x, y, lam * vx, lam * vy
+
+
+def _pairs(w, pos, vel, valid, opos, ovel, ovalid, c, pair, rob, p, q, r, ij, s):
     """Moussaid's forces in world ``w``: ``pair[i, j]`` on human ``i`` from human ``j``, ``rob[i, k]`` on
-    ``i`` from body ``k``; human ``i``'s sources (humans ``j > i``, then the bodies) as one block
-    (:func:`_block`). ``pair[j, i] = -pair[i, j]`` is what :func:`_pair` computes for ``(j, i)`` when the
-    two differ in both coordinates: every difference it takes changes sign (``a - b = -(b - a)``), so the
-    distances, ``|D|``, the angle's cross and dot products (products of two negated factors) and the
-    exponentials are the same, and the force is negated: half the pairs to compute. Where a coordinate
-    difference is zero (its sign does not flip: ``+0`` both ways), ``(j, i)`` is computed as well."""
-    m = pos.shape[1]
+    ``i`` from body ``k``, all pairs ``i < j`` and (human, body) as one block (:func:`_block`).
+    ``pair[j, i] = -pair[i, j]`` is what :func:`_pair` computes for ``(j, i)`` when the two differ in both
+    coordinates: every difference it takes changes sign (``a - b = -(b - a)``), so the distances, ``|D|``,
+    the angle's cross and dot products (products of two negated factors) and the exponentials are the
+    same, and the force is negated: half the pairs to compute. Where a coordinate difference is zero (its
+    sign does not flip: ``+0`` both ways), ``(j, i)`` is computed as well."""
+    m, lam, n = pos.shape[1], c[LAM], 0
     for i in range(m):
         if not valid[w, i]:
             continue
-        px, py, lvx, lvy = pos[w, i, 0], pos[w, i, 1], c[LAM] * vel[w, i, 0], c[LAM] * vel[w, i, 1]
-        n = 0
         for j in range(i + 1, m):
             if valid[w, j]:
-                idx[n] = j
-                q[0, n], q[1, n], q[2, n], q[3, n] = pos[w, j, 0], pos[w, j, 1], c[LAM] * vel[w, j, 0], \
-                    c[LAM] * vel[w, j, 1]
+                ij[0, n], ij[1, n] = i, j
+                _load(p, n, pos[w, i, 0], pos[w, i, 1], vel[w, i, 0], vel[w, i, 1], lam)
+                _load(q, n, pos[w, j, 0], pos[w, j, 1], vel[w, j, 0], vel[w, j, 1], lam)
                 n += 1
         for k in range(opos.shape[1]):
             if ovalid[w, k]:
-                idx[n] = -1 - k
-                q[0, n], q[1, n], q[2, n], q[3, n] = opos[w, k, 0], opos[w, k, 1], c[LAM] * ovel[w, k, 0], \
-                    c[LAM] * ovel[w, k, 1]
+                ij[0, n], ij[1, n] = i, -1 - k
+                _load(p, n, pos[w, i, 0], pos[w, i, 1], vel[w, i, 0], vel[w, i, 1], lam)
+                _load(q, n, opos[w, k, 0], opos[w, k, 1], ovel[w, k, 0], ovel[w, k, 1], lam)
                 n += 1
-        _block(px, py, lvx, lvy, q, n, c, r)
-        for k in range(n):
-            j = idx[k]
-            if j < 0:
-                rob[i, -1 - j, 0], rob[i, -1 - j, 1] = r[6, k], r[7, k]
-                continue
-            pair[i, j, 0], pair[i, j, 1] = r[6, k], r[7, k]
-            if q[0, k] != px and q[1, k] != py:
-                pair[j, i, 0], pair[j, i, 1] = -r[6, k], -r[7, k]
-            else:
-                pair[j, i, 0], pair[j, i, 1] = _pair(q[0, k], q[1, k], q[2, k], q[3, k], px, py, lvx, lvy, c, s)
+    _block(p, q, n, c, r)
+    for k in range(n):
+        i, j = ij[0, k], ij[1, k]
+        if j < 0:
+            rob[i, -1 - j, 0], rob[i, -1 - j, 1] = r[6, k], r[7, k]
+            continue
+        pair[i, j, 0], pair[i, j, 1] = r[6, k], r[7, k]
+        if q[0, k] != p[0, k] and q[1, k] != p[1, k]:
+            pair[j, i, 0], pair[j, i, 1] = -r[6, k], -r[7, k]
+        else:
+            pair[j, i, 0], pair[j, i, 1] = _pair(q[0, k], q[1, k], q[2, k], q[3, k], p[0, k], p[1, k], p[2, k],
+                                                 p[3, k], c, s)
 
 
 def _solve(pos, vel, goal, valid, rad, vpref, opos, ovel, ovalid, orad, c, body, chunk, out):
@@ -271,11 +275,12 @@ def _solve(pos, vel, goal, valid, rad, vpref, opos, ovel, ovalid, orad, c, body,
     n, m = pos.shape[0], pos.shape[1]
     for ch in _prange((n + chunk - 1) // chunk):
         s = np.empty(1, c.dtype)
-        k = m + opos.shape[1]
+        k = m * (m - 1) // 2 + m * opos.shape[1]  # pairs i < j and (human, body)
         pair, rob = np.empty((m, m, 2), c.dtype), np.empty((m, opos.shape[1], 2), c.dtype)
-        q, r, idx = np.empty((4, k), c.dtype), np.empty((8, k), c.dtype), np.empty(k, np.int64)
+        p, q, r, ij = np.empty((4, k), c.dtype), np.empty((4, k), c.dtype), np.empty((8, k), c.dtype), \
+            np.empty((2, k), np.int64)
         for w in range(ch * chunk, min(n, (ch + 1) * chunk)):
-            _pairs(w, pos, vel, valid, opos, ovel, ovalid, c, pair, rob, q, r, idx, s)
+            _pairs(w, pos, vel, valid, opos, ovel, ovalid, c, pair, rob, p, q, r, ij, s)
             for i in range(m):
                 if valid[w, i]:
                     out[w, i, 0], out[w, i, 1] = _human(w, i, pos, goal, valid, rad, vpref, opos, ovalid, orad, c,
@@ -291,7 +296,9 @@ def _compile():
         numba = numba_module()
         _prange = numba.prange
         g = globals()
-        for name in ("fd_exp", "fd_atan2", "_hyp", "_rexp", "_sign", "_pair", "_block", "_pairs", "_human"):
+        for name in ("fd_exp", "fd_atan2"):  # inlined in numba's IR: a call in the pair loop stops vectorisation
+            g[name] = numba.njit(inline="always", **OPTIONS)(g[name])
+        for name in ("_hyp", "_rexp", "_sign", "_pair", "_block", "_load", "_pairs", "_human"):
             g[name] = numba.njit(**OPTIONS)(g[name])
         _kernel = numba.njit(parallel=True, **OPTIONS)(_solve)
     return _kernel
