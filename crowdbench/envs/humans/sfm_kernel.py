@@ -1,24 +1,27 @@
 """The social-force model compiled with numba: :func:`crowdbench.envs.humans.sfm.social_force_velocities`
-as one scalar kernel, parallel over worlds.
+as one kernel, parallel over worlds (in chunks of ``CHUNK``).
 
 The torch model stays the reference (and the documentation of the model); this kernel evaluates the same
 formulas term by term, in the same association and in the inputs' float type (constants rounded to it
-first, as torch does with Python scalars; ``c / t`` as torch's ``reciprocal(t) * c``), one human at a time:
-the goal force, plus Moussaid's interaction summed over the other present humans and then the bodies
-(index order), plus the body repulsion summed over the bodies; then the speed cap. Absent humans get
-zeros; absent sources are skipped (the reference weighs them by zero: the same sum).
+first, as torch does with Python scalars; ``c / t`` as torch's ``reciprocal(t) * c``): per human the goal
+force, plus Moussaid's interaction summed over the other present humans and then the bodies (index
+order), plus the body repulsion summed over the bodies; then the speed cap. Absent humans get zeros;
+absent sources are skipped (the reference weighs them by zero: the same sum). Moussaid's force is
+computed for all of a world's pairs ``i < j`` (and human-body pairs) in one branch-free loop that LLVM
+vectorises (:func:`_block`), and ``f_ji = -f_ij`` exactly (:func:`_pairs`): half the pairs.
 
 Not bit-identical to the reference: torch's ``exp``, ``atan2`` and ``hypot`` are its vectorised (SLEEF)
-ones, and it sums the sources in several partial sums. Here ``exp`` and ``atan2`` are fdlibm's
-(:func:`fd_exp`, :func:`fd_atan2`, in double, then rounded to the inputs' type) and ``hypot`` is
-``sqrt(x^2 + y^2)`` in double, rounded: within a few float32 ulps of torch (measured maxima in
-docs/humans.md, tested in tests/test_sfm_kernel.py). So ``env.sfm_backend`` defaults to ``torch`` and no
-committed number depends on this kernel; reactive replay (the v2-sfm track) always uses the torch model.
+ones, and it sums the sources in several partial sums. Here ``exp`` and ``atan2`` are branch-free
+versions of fdlibm's (:func:`fd_exp`, :func:`fd_atan2`, in double, then rounded to the inputs' type) and
+``hypot`` is ``sqrt(x^2 + y^2)`` in double, rounded: within 4 eps of torch per step (docs/crowdnav.md,
+tests/test_sfm_kernel.py). So ``env.sfm_backend`` defaults to ``torch`` and no committed number depends
+on this kernel; reactive replay (the v2-sfm track) always uses the torch model.
 
-Bit-identical on every x86 CPU: no ``fastmath`` (no FMA contraction, no reassociation) and no C library
-function but ``sqrt`` (correctly rounded) and ``floor`` (exact); glibc's ``exp``/``atan2`` are avoided
-because glibc picks their FMA or non-FMA variant by the CPU. The tests compile the kernel for a generic
-x86-64 and for the host in two processes and require the same bytes.
+Bit-identical on every x86 CPU: no ``fastmath`` (no FMA contraction, no reassociation: vectorised lanes
+compute what the scalar code does) and no C library function but ``sqrt`` (correctly rounded) and
+``floor`` (exact); glibc's ``exp``/``atan2`` are avoided because glibc picks their FMA or non-FMA variant
+by the CPU. The tests compile the kernel for a generic x86-64 (SSE2, scalar) and for the host (AVX-512
+here) in two processes and require the same bytes.
 """
 
 from __future__ import annotations
