@@ -18,8 +18,8 @@ from crowdbench.envs.humans.sfm import SFMParams
 
 ROOT = Path(__file__).resolve().parents[1]
 KINDS = ("sparse", "dense", "overlap", "at_goal")
-# max deviation from torch, in units of the dtype's eps (m/s, velocities of ~1 m/s): measured 2 (float32)
-# and 4 (float64) over the worlds below; the bound leaves room for other inputs
+# max deviation from torch, in units of the dtype's eps (m/s, velocities of ~1 m/s): measured 4 in float32
+# and in float64 over the worlds below; the bound leaves room for other inputs
 BOUND = 16
 
 
