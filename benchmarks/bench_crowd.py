@@ -12,9 +12,9 @@ An env-step advances one environment by one step: ``B`` environments stepped onc
   robot invisible and visible, robot straight to its goal (``--robot random``: uniform in the speed
   disc). "world" = ``observe`` + ``step`` + partial reset of the finished environments by mask;
   "CrowdEnv" = the TorchRL env through ``step_and_maybe_reset``. Episodes cycle through a pool of
-  ``--pool`` precomputed CrowdNav training cases, so the case generator (pure Python rejection
-  sampling, its cost printed separately: ~0.7 ms per case at 5 humans, ~0.1 s at 20) is not in
-  the figures. CrowdNav's generator cannot place more than ~25 humans on its 4 m circle (each start
+  ``--pool`` precomputed CrowdNav training cases, so the case generator (its cost printed
+  separately; benchmarks/bench_cases.py) is not in the figures. Each row ends with the 1-minute load
+  average when it was measured. CrowdNav's generator cannot place more than ~25 humans on its 4 m circle (each start
   and its antipodal goal need 0.8 m from every other start and goal; 30 never terminates): above
   ``--case-max`` humans the pool is placed here instead, evenly on a circle just big enough
   (:func:`ring_episodes`; 50 humans: radius 14.6 m), the robot crossing it from (0, -R) to (0, R).
@@ -325,6 +325,7 @@ def main(argv=None) -> None:
     ap.add_argument("--crowdnav-policy", default="orca,fixed")
     ap.add_argument("--skip-reactive", action="store_true")
     ap.add_argument("--orca-backend", default="numba,torch", help="ORCA solvers: numba (compiled), torch")
+    ap.add_argument("--sfm-backend", default="numba,torch", help="social force: numba (compiled), torch")
     ap.add_argument("--pyrvo", action="store_true", help="also a Python loop over pyrvo simulators (ORCA rows)")
     args = ap.parse_args(argv)
 
@@ -342,10 +343,10 @@ def main(argv=None) -> None:
         for n in args.n_humans:
             pools[n] = episode_pool(n, args.pool, args.case_max)
             print(f"  {n} humans: {args.pool} episodes, {pools[n][1]}, {pools[n][2] * 1e3:.1f} ms per episode to make")
-        print("\n| humans | M | robot visible | path | threads | B | env-steps/s | us per env-step |")
-        print("|---|---|---|---|---|---|---|---|")
-        models = [(h, be) for h in args.humans.split(",") for be in (args.orca_backend.split(",") if h == "orca"
-                                                                      else ["torch"])]
+        print("\n| humans | M | robot visible | path | threads | B | env-steps/s | us per env-step | load |")
+        print("|---|---|---|---|---|---|---|---|---|")
+        backends = {"orca": args.orca_backend.split(","), "sfm": args.sfm_backend.split(",")}
+        models = [(h, be) for h in args.humans.split(",") for be in backends[h]]
         runs = [(h, be, n, v, p, t, args.batch) for h, be in models for n in args.n_humans for v in visible
                 for p in paths for t in args.threads]
         if args.single:
@@ -353,11 +354,10 @@ def main(argv=None) -> None:
                      for p in paths]
         for h, be, n, v, p, t, b in runs:
             torch.set_num_threads(t)
-            cfg = CrowdNavConfig(humans=h, n_humans=n, robot_visible=v, orca_backend=be)
+            cfg = CrowdNavConfig(humans=h, n_humans=n, robot_visible=v, **{f"{h}_backend": be})
             r = fns[p](cfg, b, pools[n][0], args.seconds, args.robot)
-            label = f"{h} ({be})" if h == "orca" else h
-            print(f"| {label} | {n} | {'yes' if v else 'no'} | {names[p]} | {t} | {b} | {r:,.0f} | {1e6 / r:.1f} |",
-                  flush=True)
+            print(f"| {h} ({be}) | {n} | {'yes' if v else 'no'} | {names[p]} | {t} | {b} | {r:,.0f} | {1e6 / r:.1f} | "
+                  f"{os.getloadavg()[0]:.1f} |", flush=True)
         if args.pyrvo:
             from pyrvo_loop import pyrvo_rate
 
@@ -367,7 +367,8 @@ def main(argv=None) -> None:
                     r = pyrvo_rate(pools[n][0], args.batch, t, args.seconds, cfg.dt, cfg.human_radius
                                    + cfg.orca_radius_margin, cfg.human_v_pref, cfg.orca)
                     print(f"| orca (Python loop over pyrvo, {t} process(es)) | {n} | yes | set pref + do_step + "
-                          f"read back | {t} | {args.batch} | {r:,.0f} | {1e6 / r:.1f} |", flush=True)
+                          f"read back | {t} | {args.batch} | {r:,.0f} | {1e6 / r:.1f} | {os.getloadavg()[0]:.1f} |",
+                          flush=True)
 
     if args.replay_batch:
         B = args.replay_batch

@@ -112,6 +112,7 @@ class CrowdNavEnvConfig(SimEnvConfig):
     orca_time_horizon: float = bounded(5.0, gt=0)
     orca_radius_margin: float = bounded(0.01, ge=0)
     orca_backend: str = bounded("numba", choices=("numba", "torch"))  # the same numbers; numba is faster
+    sfm_backend: str = bounded("torch", choices=("torch", "numba"))  # numba: faster, a few ulps off torch
     eval_settings: list[str] | None = field(default=None, metadata={"min_len": 1})  # e.g. [circle_n5]
     eval_episodes: int | None = bounded(None, ge=1)
 

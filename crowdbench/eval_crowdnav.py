@@ -93,8 +93,9 @@ def evaluate_crowdnav(policy: Policy, cfg: CrowdNavConfig, settings=None, episod
         results["scenes"][name] = aggregate(m)
         if save_episodes:
             rows += episode_rows(name, eps, tr, m, c)
-    # orca_backend is how, not what: both solvers give the same numbers (results stay comparable)
-    skip = ("scenario", "n_humans", "frame", "orca_backend")
+    # orca_backend is how, not what: both solvers give the same numbers (results stay comparable); the
+    # numba social force is not bit-identical to torch's, so sfm_backend is written when it is not torch
+    skip = ("scenario", "n_humans", "frame", "orca_backend") + (("sfm_backend",) if cfg.sfm_backend == "torch" else ())
     results["sim_config"] = {k: v for k, v in asdict(cfg).items() if k not in skip}
     if out_dir is not None:
         write_results(out_dir, results, rows if save_episodes else None)

@@ -162,3 +162,48 @@ def test_published_case_lists_keep_their_digests():
     from crowdbench.fixed_lists import crowdnav_digests
 
     assert crowdnav_digests(CrowdNavConfig(), list(DIGESTS)) == DIGESTS
+
+
+def _equal_to_reference(case, scenario, n, phase="test"):
+    fast, ref = crowdnav_case(case, scenario, n, phase), reference_case(case, scenario, n, phase)
+    assert fast.keys() == ref.keys()
+    for k, v in ref.items():
+        same = v.dtype == fast[k].dtype and np.array_equal(v, fast[k]) if isinstance(v, np.ndarray) else fast[k] == v
+        assert same, (scenario, n, case, k)
+
+
+@pytest.mark.parametrize("scenario,n", [("circle", 20), ("square", 20), ("circle", 5)])
+def test_compiled_sampler_with_tiny_buffers_and_a_wide_margin(monkeypatch, scenario, n):
+    """The compiled sampler's two slow paths, forced to run all the time: the draw buffer runs out every 6
+    draws (resume mid-loop), and every candidate within 5 cm of a threshold is handed back and decided by
+    CrowdNav's own scalar test; the cases are still CrowdNav's."""
+    import crowdbench.envs.crowdnav_cases as cc
+
+    undecided = []
+    decide = cc._Run._decide
+
+    def counting(self, *args):
+        undecided.append(args)
+        return decide(self, *args)
+
+    monkeypatch.setattr(cc, "DRAWS", 6)
+    monkeypatch.setattr(cc._Run, "__init__", _with_margin(cc._Run.__init__, 0.05))
+    monkeypatch.setattr(cc._Run, "_decide", counting)
+    for case in (0, 3, 211) if scenario == "circle" and n == 20 else range(0, 500, 41):
+        _equal_to_reference(case, scenario, n)
+    assert undecided
+
+
+def _with_margin(init, margin):
+    def wrapped(self, *args, **kwargs):
+        kwargs["margin"] = margin
+        init(self, *args, **kwargs)
+    return wrapped
+
+
+@pytest.mark.slow  # ~25 s: reference_case draws the 1.8 million uniforms one by one
+def test_the_long_rejection_runs_of_circle_20():
+    # case 66 of circle_n20 draws 1,840,689 uniforms (its 20th human is refused ~600,000 times), case 3 few
+    for case in (66, 3):
+        _equal_to_reference(case, "circle", 20)
+    assert crowdnav_case(66, "circle", 20)["n_draws"] == 1840689

@@ -21,7 +21,7 @@ from crowdbench.cli import compose, main
 from crowdbench.envs.core import COLLISION, RUNNING, SUCCESS
 from crowdbench.envs.factory import make_env, selfplay_env, selfplay_parallel_env
 from crowdbench.envs.policy import GROUP, obs_tensordict
-from crowdbench.envs.selfplay import SelfPlayConfig, episode_set, sample_episodes
+from crowdbench.envs.selfplay import SelfPlayConfig, _square, episode_set, sample_episodes
 from crowdbench.eval_selfplay import evaluate_selfplay
 
 ALL = torch.ones(1, dtype=torch.bool)
@@ -250,3 +250,44 @@ def test_bad_selfplay_settings_are_one_line_errors(capsys, tmp_path):
     assert "raise env.circle_radius" in capsys.readouterr().err
     assert main(["eval", "env=selfplay", "policy=oracle", f"out={tmp_path}"]) == 2
     assert "not available with env=selfplay" in capsys.readouterr().err
+
+
+def _square_testing_all(n, cfg, gen, tries=500):
+    """Square placement as it was: every attempt tests every episode (the reference for the test below)."""
+    A, half = cfg.n_agents, cfg.square_width / 2
+    earlier = torch.ones(A, A, dtype=torch.bool).tril(-1)
+
+    def draw(k):
+        side = torch.randint(0, 4, (k,), generator=gen)
+        along_s = (2 * torch.rand(k, generator=gen) - 1) * half
+        along_g = (2 * torch.rand(k, generator=gen) - 1) * half
+        sign = torch.where(side % 2 == 0, -half, half)
+        vertical = (side < 2).unsqueeze(-1)
+        s = torch.where(vertical, torch.stack((sign, along_s), -1), torch.stack((along_s, sign), -1))
+        g = torch.where(vertical, torch.stack((-sign, along_g), -1), torch.stack((along_g, -sign), -1))
+        return s, g
+
+    assert _square.__defaults__ == (tries,)
+    start, goal = (x.view(n, A, 2) for x in draw(n * A))
+    for _ in range(tries):
+        close = torch.zeros(n, A, A, dtype=torch.bool)
+        for pts in (start, goal):
+            close |= (pts.unsqueeze(1) - pts.unsqueeze(2)).norm(dim=-1) < cfg.min_spacing
+        bad = (close & earlier).any(-1)
+        k = int(bad.sum())
+        if k == 0:
+            return start, goal
+        start[bad], goal[bad] = draw(k)
+    raise ValueError("could not place")
+
+
+@pytest.mark.parametrize("agents,width", [(21, 12.0), (8, 8.0), (20, 8.0)])
+def test_square_placement_tests_only_the_episodes_that_redrew(agents, width):
+    # the faster placement (only the episodes that redrew an agent are tested again) makes the same draws
+    cfg = SelfPlayConfig(n_agents=agents, scenario="square", square_width=width)
+    for seed in range(12):
+        for n in (1, 5, 64):
+            got_gen, ref_gen = torch.Generator().manual_seed(seed), torch.Generator().manual_seed(seed)
+            got, ref = _square(n, cfg, got_gen), _square_testing_all(n, cfg, ref_gen)
+            assert torch.equal(got[0], ref[0]) and torch.equal(got[1], ref[1])
+            assert torch.equal(got_gen.get_state(), ref_gen.get_state())

@@ -34,7 +34,7 @@ import torch
 
 from crowdbench.envs.core import SimConfig, check_seed, int_option
 from crowdbench.envs.crowdnav_cases import CROWDNAV, case_list, crowdnav_case
-from crowdbench.envs.humans.reactive import CROWDS, ORCA_BACKENDS, OrcaParams, reactive_crowd
+from crowdbench.envs.humans.reactive import CROWDS, ORCA_BACKENDS, SFM_BACKENDS, OrcaParams, reactive_crowd
 
 SCENARIOS = ("circle", "square")
 HUMAN_MODELS = tuple(CROWDS)
@@ -60,6 +60,7 @@ class CrowdNavConfig(SimConfig):
     orca_time_horizon: float = OrcaParams.time_horizon
     orca_radius_margin: float = OrcaParams.radius_margin
     orca_backend: str = OrcaParams.backend  # numba | torch: the same numbers, numba is faster
+    sfm_backend: str = "torch"  # torch (the reference) | numba: faster, within a few float32 ulps (not identical)
 
     def __post_init__(self):
         super().__post_init__()
@@ -69,6 +70,8 @@ class CrowdNavConfig(SimConfig):
             raise ValueError(f"unknown env.humans {self.humans!r} for env=crowdnav; valid: {', '.join(HUMAN_MODELS)}")
         if self.orca_backend not in ORCA_BACKENDS:
             raise ValueError(f"unknown env.orca_backend {self.orca_backend!r}; valid: {', '.join(ORCA_BACKENDS)}")
+        if self.sfm_backend not in SFM_BACKENDS:
+            raise ValueError(f"unknown env.sfm_backend {self.sfm_backend!r}; valid: {', '.join(SFM_BACKENDS)}")
         if self.n_humans < 1:
             raise ValueError(f"env.n_humans must be >= 1, got {self.n_humans}")
         if abs(self.dt - CROWDNAV.dt) > 1e-12 or self.v_max != CROWDNAV.robot_v_pref:
@@ -110,7 +113,7 @@ def list_digest(episodes: dict[str, torch.Tensor]) -> str:
     return h.hexdigest()
 
 
-@functools.lru_cache(maxsize=16)  # the 500 cases of 20 humans take ~2.5 s: once per process
+@functools.lru_cache(maxsize=16)  # the 500 cases of 20 humans take ~0.3 s (compiled sampler): once per process
 def _test_list(scenario: str, n_humans: int, phase: str) -> dict[str, torch.Tensor]:
     return _episodes(case_list(scenario, n_humans, CROWDNAV.size(phase), phase))
 

@@ -68,11 +68,12 @@ Quirks (all from ``crowd_sim/envs/crowd_sim.py`` unless named otherwise)
 
 from __future__ import annotations
 
-import itertools
+import threading
 from dataclasses import dataclass
-from functools import partial
 
 import numpy as np
+
+from crowdbench.envs.case_kernel import CIRCLE, DONE, MORE, SQUARE_START, kernels
 
 __all__ = ["CROWDNAV", "CrowdNavFacts", "case_list", "crowdnav_case", "reference_case"]
 
@@ -159,9 +160,10 @@ def crowdnav_case(
 ) -> dict:
     """The initial state of CrowdNav's ``reset(phase, test_case=case)`` with ``n_humans`` humans.
 
-    Candidates are rejection-tested many at a time (:func:`_first_free`), with the same draws in the
-    same order and the same accept/reject decisions as :func:`reference_case` (one candidate at a time,
-    as CrowdNav does); ``randomize_attributes`` takes that reference path.
+    Placed by a compiled rejection sampler (:mod:`crowdbench.envs.case_kernel`, driven by :class:`_Run`)
+    with the same draws in the same order and the same accept/reject decisions and values as
+    :func:`reference_case` (one candidate at a time, as CrowdNav does); ``randomize_attributes`` takes
+    that reference path.
 
     Returns float64 arrays ``robot_start [2]``, ``robot_goal [2]``, ``human_start [n, 2]``,
     ``human_goal [n, 2]``, ``human_radius [n]``, ``human_v_pref [n]``, the scalars ``robot_theta``,
@@ -179,54 +181,17 @@ def crowdnav_case(
     if n < 0 or case < 0:
         return reference_case(case, scenario, n_humans, phase)  # the errors and the fixed debug case
     seed = f.offset(phase) + case
-    u = _Draws(np.random.RandomState(seed))
-    robot_start, robot_goal = np.array([0.0, -f.circle_radius]), np.array([0.0, f.circle_radius])
-    starts, goals = np.zeros((n, 2)), np.zeros((n, 2))
-    placed_s, placed_g = [robot_start], [robot_goal]  # CrowdNav compares against these agents
-    radii = [f.robot_radius]
     r, v = f.human_radius, f.human_v_pref
-    angles, noises, signs = np.zeros(n), np.zeros((n, 2)), np.zeros(n)
-    for i in range(n):
-        rad = np.array(radii)
-        if scen == "circle":
-            ref = np.concatenate((placed_s, placed_g))
-            d, start = _first_free(u, 3, partial(_circle_xy, v_pref=v), ref, np.tile(rad, 2), r)
-            goal = -start
-            angles[i], noises[i] = d[0] * np.pi * 2, (d[1:] - 0.5) * v  # as _circle_xy computes them
-        else:
-            sign = -1 if u.take(1)[0] > 0.5 else 1
-            _, start = _first_free(u, 2, partial(_square_xy, sign=sign), np.array(placed_s), rad, r)
-            _, goal = _first_free(u, 2, partial(_square_xy, sign=-sign), np.array(placed_g), rad, r)
-            signs[i] = sign
-        starts[i], goals[i] = start, goal
-        placed_s.append(start)
-        placed_g.append(goal)
-        radii.append(r)
-    out = {"robot_start": robot_start, "robot_goal": robot_goal, "robot_theta": f.robot_theta, "case": case,
-           "phase": phase, "scenario": scen, "human_start": starts, "human_goal": goals,
-           "human_radius": np.full(n, r), "human_v_pref": np.full(n, v), "seed": seed, "n_draws": u.used}
-    out.update({"human_angle": angles, "human_noise": noises} if scen == "circle" else {"human_sign": signs})
+    run = _Run(_seeded(seed), scen, n, r, v)
+    starts, goals = run.place()
+    out = {"robot_start": run.robot_start, "robot_goal": run.robot_goal, "robot_theta": f.robot_theta,
+           "case": case, "phase": phase, "scenario": scen, "human_start": starts, "human_goal": goals,
+           "human_radius": np.full(n, r), "human_v_pref": np.full(n, v), "seed": seed, "n_draws": run.used}
+    if scen == "circle":  # the accepted candidates' draws, with CrowdNav's operations (angle, nx, ny)
+        out.update(human_angle=run.acc[:, 0] * np.pi * 2, human_noise=(run.acc[:, 1:] - 0.5) * v)
+    else:
+        out["human_sign"] = run.signs
     return out
-
-
-class _Draws:
-    """CrowdNav's uniform draws, taken in blocks: ``random_sample(k)`` gives the same doubles in the
-    same order as ``k`` calls of ``random_sample()``, so a block read ahead changes nothing."""
-
-    def __init__(self, rng: np.random.RandomState):
-        self.rng, self.buf, self.pos, self.used = rng, np.empty(0), 0, 0
-
-    def peek(self, k: int) -> np.ndarray:
-        if self.pos + k > self.buf.size:
-            self.buf = np.concatenate((self.buf[self.pos:], self.rng.random_sample(max(k, 1024))))
-            self.pos = 0
-        return self.buf[self.pos:self.pos + k]
-
-    def take(self, k: int) -> np.ndarray:
-        out = self.peek(k)
-        self.pos += k
-        self.used += k
-        return out
 
 
 # candidate position from its draws, with CrowdNav's scalar operations in CrowdNav's order
@@ -240,32 +205,88 @@ def _square_xy(d, sign: int) -> tuple[float, float]:
     return d[0] * CROWDNAV.square_width * 0.5 * sign, (d[1] - 0.5) * CROWDNAV.square_width
 
 
-BLOCKS = (4, 16, 64, 256)  # candidates tested together, growing while a human's candidates are refused
+_RNG = threading.local()
+
+
+def _seeded(seed: int) -> np.random.RandomState:
+    """This thread's RandomState after ``seed(seed)``, which is what CrowdNav's ``np.random.seed`` does to
+    the global one; ~60x cheaper than a new ``RandomState(seed)``, which first seeds from OS entropy."""
+    rng = getattr(_RNG, "rng", None)
+    if rng is None:
+        rng = _RNG.rng = np.random.RandomState()
+    rng.seed(seed)
+    return rng
+
+
+DRAWS = 3 * 1024  # draws taken at a time: the kernel's buffer is the draws it has not consumed plus these
 MARGIN = 1e-9  # m: decisions this close to the threshold are re-made with CrowdNav's own scalar test
 
 
-def _first_free(u: _Draws, width: int, xy, others: np.ndarray, radii: np.ndarray, radius: float):
-    """Consume the draws of CrowdNav's rejection loop up to its first accepted candidate; return that
-    candidate's draws and its position.
+class _Run:
+    """One case's placement by the compiled sampler (:mod:`crowdbench.envs.case_kernel`): draws in a
+    buffer that grows as the kernel asks, and CrowdNav's own test for the candidates it leaves undecided."""
 
-    Blocks of candidates are placed with array operations and tested against every agent at once; only
-    a candidate within ``MARGIN`` of a threshold is decided again by :func:`_too_close` (a norm in
-    another summation order may differ in the last bit), and the accepted candidate is recomputed with
-    CrowdNav's scalar operations, so values and decisions are CrowdNav's."""
-    thr = radius + radii + CROWDNAV.discomfort_dist
-    for tries in itertools.count():
-        block = BLOCKS[min(tries, len(BLOCKS) - 1)]
-        d = u.peek(block * width).reshape(block, width)
-        cx, cy = xy(d.T)
-        low = (np.hypot(cx[:, None] - others[:, 0], cy[:, None] - others[:, 1]) - thr).min(1)
-        for j in np.flatnonzero(low >= -MARGIN):  # the others are certainly too close
-            px, py = xy([float(x) for x in d[j]])
-            if low[j] <= MARGIN and _too_close(px, py, [(*o, rr) for o, rr in zip(others, radii)], radius,
-                                               CROWDNAV.discomfort_dist):
-                continue
-            u.take((j + 1) * width)
-            return d[j].copy(), np.array([px, py])
-        u.take(block * width)
+    def __init__(self, rng: np.random.RandomState, scen: str, n: int, r: float, v: float, margin: float = MARGIN):
+        f = CROWDNAV
+        self.rng, self.scen, self.n, self.r, self.v, self.margin = rng, scen, n, r, v, margin
+        self.robot_start, self.robot_goal = np.array([0.0, -f.circle_radius]), np.array([0.0, f.circle_radius])
+        self.d = rng.random_sample(DRAWS)
+        self.forced_at, self.forced_ok = np.empty(0, np.int64), np.empty(0, np.bool_)
+        self.thr = r + r + f.discomfort_dist  # CrowdNav's radius + r + discomfort between two humans
+        # others' x, y, (threshold -/+ margin)^2, radius: circle [5, 2n + 2] (the robot's start and goal,
+        # then each human's start and goal); square [2 (starts, goals), 5, n + 1] (the robot's first)
+        robot_thr = r + f.robot_radius + f.discomfort_dist
+        rows = [(0.0, y, (robot_thr - margin) ** 2, (robot_thr + margin) ** 2, f.robot_radius)
+                for y in (-f.circle_radius, f.circle_radius)]
+        self.o = np.zeros((5, 2 * n + 2) if scen == "circle" else (2, 5, n + 1))
+        self.o[..., 4, :] = r
+        if scen == "circle":
+            self.o[:, :2] = np.array(rows).T
+        else:
+            self.o[:, :, 0] = rows
+        self.acc, self.signs = np.zeros((n, 3)), np.zeros(n)
+        self.used = 0
+
+    def place(self) -> tuple[np.ndarray, np.ndarray]:
+        """Run the kernel to the end; the humans' starts and goals ``[n, 2]`` (draws consumed: ``used``)."""
+        circle, square = kernels()
+        i, p, base = 0, 0, 0  # human, draw in the buffer, draws consumed before the buffer
+        while True:
+            if self.scen == "circle":
+                ang = self.d[0::3] * np.pi * 2  # each candidate's angle: draws 0, 3, 6, ... of the buffer
+                st, i, p, cand, loop = circle(self.d, np.cos(ang), np.sin(ang), CROWDNAV.circle_radius, self.v,
+                                             self.thr, *self.o[:4], self.n, i, p, self.margin, self.forced_at,
+                                             self.forced_ok, self.acc)
+            else:
+                st, i, p, cand, loop = square(self.d, CROWDNAV.square_width, self.thr, self.o[0], self.o[1], self.n,
+                                             i, p, self.margin, self.forced_at, self.forced_ok, self.signs)
+            if st == DONE:
+                break
+            if st == MORE:  # keep the draws from the resume point on, add fresh ones
+                self.d = np.concatenate((self.d[p:], self.rng.random_sample(DRAWS)))
+                keep = self.forced_at >= p
+                self.forced_at, self.forced_ok = self.forced_at[keep] - p, self.forced_ok[keep]
+                base, p = base + p, 0
+            else:
+                self._decide(i, p, cand, loop)
+        self.used = base + p
+        if self.scen == "circle":
+            return self.o[:2, 2::2].T.copy(), self.o[:2, 3::2].T.copy()
+        return self.o[0, :2, 1:].T.copy(), self.o[1, :2, 1:].T.copy()
+
+    def _decide(self, i: int, begin: int, cand: int, loop: int) -> None:
+        """CrowdNav's own test (:func:`_too_close`) for the candidate drawn at ``cand`` of human ``i``."""
+        d = [float(x) for x in self.d[cand:cand + 3]]
+        if loop == CIRCLE:
+            px, py = _circle_xy(d, self.v)
+            o = self.o[:, :2 * i + 2]
+        else:
+            sign = -1 if self.d[begin] > 0.5 else 1
+            px, py = _square_xy(d, sign if loop == SQUARE_START else -sign)
+            o = self.o[0 if loop == SQUARE_START else 1, :, :i + 1]
+        free = not _too_close(px, py, [(x, y, rr) for x, y, _, _, rr in o.T], self.r, CROWDNAV.discomfort_dist)
+        self.forced_at = np.append(self.forced_at, cand)
+        self.forced_ok = np.append(self.forced_ok, free)
 
 
 def reference_case(

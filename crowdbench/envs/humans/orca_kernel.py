@@ -33,11 +33,10 @@ intra-op threads, on numba's workqueue layer (see :func:`_compile`).
 
 from __future__ import annotations
 
-import os
-import threading
-
 import numpy as np
 import torch
+
+from crowdbench.envs.humans.numba_runtime import LOCK, OPTIONS, numba_module, set_threads
 
 F0, F1, HALF = np.float32(0.0), np.float32(1.0), np.float32(0.5)
 EPS = np.float32(1e-5)  # RVO_EPSILON, as crowdbench.envs.humans.lp.EPS
@@ -45,7 +44,6 @@ DROP = np.float32(1e30)  # crowdbench.envs.humans.lp._DROP
 TINY = np.float32(np.finfo(np.float32).tiny)
 
 _kernel = None
-_LOCK = threading.Lock()  # the workqueue layer must not be entered by two threads at once
 
 
 def _step(x):
@@ -228,20 +226,13 @@ def _compile():
     """Compile (or load from the cache) lazily: importing this module does not import numba."""
     global _kernel, _prange
     if _kernel is None:
-        import numba
-
-        if "NUMBA_THREADING_LAYER" not in os.environ:
-            # workqueue, not OpenMP: after a parallel region OpenMP's workers spin, taking the cores from
-            # torch's threads; on 2 busy cores (load ~10) the 20-human world ran 3x faster with workqueue.
-            # (Only until numba's first parallel launch in the process: then the layer is fixed.)
-            numba.config.THREADING_LAYER = "workqueue"
+        numba = numba_module()
         _prange = numba.prange
-        opts = {"cache": True, "fastmath": False, "error_model": "numpy"}
         g = globals()
         for name in ("_step", "_lerp", "_violation", "_lp1", "_lp2_lines", "_lp2", "_lp2_direction", "_lp3", "_neighbors",
                      "_line"):
-            g[name] = numba.njit(**opts)(g[name])
-        _kernel = numba.njit(parallel=True, **opts)(_solve)
+            g[name] = numba.njit(**OPTIONS)(g[name])
+        _kernel = numba.njit(parallel=True, **OPTIONS)(_solve)
     return _kernel
 
 
@@ -259,7 +250,7 @@ def orca_velocities(pos, vel, pref, valid, radius, max_speed, *, time_horizon: f
                     neighbor_dist: float, max_neighbors: int) -> torch.Tensor:
     """:func:`crowdbench.envs.humans.orca.orca_velocities` (same arguments, same values), compiled."""
     kernel = _compile()
-    _set_threads()
+    set_threads()
     n, k = valid.shape
     m = max(min(int(max_neighbors), k - 1), 0)
     out = np.empty((n, k, 2), np.float32)
@@ -267,18 +258,9 @@ def orca_velocities(pos, vel, pref, valid, radius, max_speed, *, time_horizon: f
     args = (_f32(pos), _f32(vel), _f32(pref), valid_np, _per_agent(radius, valid), _per_agent(max_speed, valid),
             np.float32(1.0 / float(time_horizon)), np.float32(1.0 / float(dt) - 1.0 / float(time_horizon)),
             np.float32(float(neighbor_dist) ** 2), m, out)
-    with _LOCK:
+    with LOCK:
         kernel(*args)
     new = torch.from_numpy(out)
     if vel.dtype == torch.float32:
         return new
     return torch.where(valid[..., None], new.to(vel.dtype), vel)
-
-
-def _set_threads() -> None:
-    """As many numba threads as torch's intra-op threads (the world's ``--threads``)."""
-    import numba
-
-    want = max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS))
-    if numba.get_num_threads() != want:
-        numba.set_num_threads(want)

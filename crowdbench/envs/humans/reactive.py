@@ -18,8 +18,8 @@ from dataclasses import dataclass
 
 import torch
 
-from crowdbench.envs.humans import orca, orca_kernel
-from crowdbench.envs.humans.sfm import SFMParams, social_force_velocities
+from crowdbench.envs.humans import orca, orca_kernel, sfm, sfm_kernel
+from crowdbench.envs.humans.sfm import SFMParams
 
 
 @dataclass(frozen=True)
@@ -35,6 +35,8 @@ class OrcaParams:
 
 
 ORCA_BACKENDS = {"numba": orca_kernel.orca_velocities, "torch": orca.orca_velocities}
+# torch: the reference (the default); numba: compiled, within a few float32 ulps of it (not bit-identical)
+SFM_BACKENDS = {"torch": sfm.social_force_velocities, "numba": sfm_kernel.social_force_velocities}
 
 
 class ReactiveCrowd:
@@ -121,17 +123,19 @@ class SfmCrowd(ReactiveCrowd):
 
     name = "sfm"
 
-    def __init__(self, *args, params: SFMParams | None = None, **kwargs):
+    def __init__(self, *args, params: SFMParams | None = None, backend: str = "torch", **kwargs):
         super().__init__(*args, **kwargs)
-        self.params = params or SFMParams()
+        if backend not in SFM_BACKENDS:
+            raise ValueError(f"unknown env.sfm_backend {backend!r}; valid: {', '.join(SFM_BACKENDS)}")
+        self.params, self.backend = params or SFMParams(), backend
 
     def velocities(self, world) -> torch.Tensor:
         others = {}
         if self.robot_visible:
             others = {"others_pos": world.pos, "others_vel": world.vel, "others_valid": world.present(),
                       "others_radius": self.robot_radius}
-        return social_force_velocities(self.pos, self.vel, self.goal, self.valid, self.radius, self.v_pref,
-                                       dt=self.dt, params=self.params, **others)
+        return SFM_BACKENDS[self.backend](self.pos, self.vel, self.goal, self.valid, self.radius, self.v_pref,
+                                          dt=self.dt, params=self.params, **others)
 
 
 CROWDS = {"orca": OrcaCrowd, "sfm": SfmCrowd}
@@ -139,7 +143,11 @@ CROWDS = {"orca": OrcaCrowd, "sfm": SfmCrowd}
 
 def reactive_crowd(cfg, batch: int, orca: OrcaParams | None = None) -> ReactiveCrowd:
     """``cfg.n_humans`` humans of model ``cfg.humans`` for ``batch`` environments, from a simulator config
-    with the humans' fields (``human_radius``, ``human_v_pref``, ``robot_visible``; CrowdNav, self-play)."""
-    kwargs = {"params": orca} if cfg.humans == "orca" else {}
+    with the humans' fields (``human_radius``, ``human_v_pref``, ``robot_visible``; CrowdNav, self-play; an
+    ``sfm_backend`` field if it has one)."""
+    if cfg.humans == "orca":
+        kwargs = {"params": orca}
+    else:
+        kwargs = {"backend": getattr(cfg, "sfm_backend", "torch")}
     return CROWDS[cfg.humans](batch, cfg.n_humans, cfg.human_radius, cfg.human_v_pref, cfg.dt,
                               robot_visible=cfg.robot_visible, robot_radius=cfg.robot_radius, **kwargs)
