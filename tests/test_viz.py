@@ -193,7 +193,7 @@ def fake_run(root, name, seed, frames, success, config_extra=None):
 
 
 def test_plot_overlays_runs_with_seed_band(tmp_path):
-    from crowdbench.viz.figures import band, group_runs, read_scalars
+    from crowdbench.viz.curves import band, group_runs, read_scalars
 
     a = fake_run(tmp_path, "s0", 0, [256, 512, 768, 1024], [0.0, 0.2, 0.4, 0.6])
     b = fake_run(tmp_path, "s1", 1, [256, 512, 768], [0.2, 0.2, 0.6])

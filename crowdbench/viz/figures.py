@@ -7,20 +7,17 @@
   paths come from the scene data (the same resampled replay the simulator used): the episode
   starts at grid step ``start_time_s / dt`` and lasts ``len(robot_xy) - 1`` steps. Humans that
   never come within the sensing range of the robot are drawn faintly, without markers.
-- ``crowdbench plot <run dir> [<run dir> ...] [--out FILE] [--smooth N]``: success / collision
-  rates (training window and the held-out probe), episode return and losses vs environment
-  frames from the TorchRL ``CSVLogger`` files ``RUN/logs/scalars/<name>.csv`` (``step,value``
-  rows). Runs whose checkpoint configs differ only in the seed (and output/budget keys) form one
-  group: its mean is drawn with a min-max band over the seeds.
+- ``crowdbench viz ... --video FILE.gif|FILE.mp4``: the episode animated, one frame per step
+  (crowdbench/viz/video.py).
+- ``crowdbench plot``: training curves (crowdbench/viz/curves.py).
 
-Bad input (missing file, no such episode or scene, a run without CSV logs) raises ``ValueError``
-with a one-line message; the CLI prints it and exits with code 2.
+Bad input (missing file, no such episode or scene) raises ``ValueError`` with a one-line message; the
+CLI prints it and exits with code 2.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import math
 from pathlib import Path
 
@@ -36,10 +33,6 @@ from crowdbench.viz.records import load_rows
 ROBOT = "#1f5fd0"
 GOAL = "#d62728"
 TIME_CMAP = "viridis"
-SCALARS = ("logs", "scalars")
-# keys that do not change what is trained: runs differing only in these are seeds of one config
-NOT_CONFIG = ("seed", "out", "resume", "train.max_minutes", "train.total_frames", "train.checkpoint_every",
-              "train.save_buffer", "train.logger", "viz", "eval")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -196,177 +189,12 @@ def viz_command(argv: list[str]) -> Path:
     return episode_figure(row, out, time_base, a.mark_every)
 
 
-# ---------------------------------------------------------------------------------------------- curves
-def read_scalars(run: Path) -> dict[str, np.ndarray]:
-    """``{name: [n, 2] (frames, value)}`` from ``RUN/logs/scalars/*.csv`` (TorchRL CSVLogger)."""
-    run = Path(run)
-    if not run.is_dir():
-        raise ValueError(f"run directory not found: {run}")
-    files = sorted(run.joinpath(*SCALARS).glob("*.csv"))
-    if not files:
-        raise ValueError(f"no training log in {run}: expected {run.joinpath(*SCALARS)}/<name>.csv (TorchRL CSVLogger)")
-    out = {}
-    for f in files:
-        try:
-            data = np.loadtxt(f, delimiter=",", ndmin=2)
-        except ValueError:
-            raise ValueError(f"{f}: not a step,value CSV") from None
-        if data.size:
-            out[f.stem] = data[np.argsort(data[:, 0], kind="stable")]
-    return out
-
-
-def run_config(run: Path) -> dict | None:
-    """The run's config from its checkpoint (``weights_only=True``), or ``None`` without one."""
-    ckpt = Path(run) / "checkpoint.pt"
-    if not ckpt.is_file():
-        return None
-    import torch
-
-    try:
-        return torch.load(ckpt, map_location="cpu", weights_only=True).get("config")
-    except Exception:  # noqa: BLE001 - a broken checkpoint only loses the grouping
-        return None
-
-
-def _flat(d, prefix="") -> dict:
-    out = {}
-    for k, v in (d or {}).items():
-        key = f"{prefix}{k}"
-        if isinstance(v, dict):
-            out.update(_flat(v, key + "."))
-        else:
-            out[key] = v
-    return out
-
-
-def group_runs(runs: list[Path]) -> list[tuple[str, list[Path]]]:
-    """Runs grouped by config (seed and output/budget keys ignored), labelled by what differs."""
-    groups: dict[str, list[Path]] = {}
-    flats: dict[str, dict] = {}
-    for run in runs:
-        cfg = run_config(run)
-        if cfg is None:
-            key, flat = f"dir:{run}", {"run": Path(run).name}
-        else:
-            flat = {k: v for k, v in _flat(cfg).items() if not any(k == n or k.startswith(n + ".") for n in NOT_CONFIG)}
-            key = json.dumps(flat, sort_keys=True, default=str)
-        groups.setdefault(key, []).append(run)
-        flats[key] = flat
-    keys = list(groups)
-    differ = sorted({k for a in keys for k in flats[a] if any(flats[b].get(k) != flats[a][k] for b in keys)})
-    out = []
-    for key in keys:
-        f = flats[key]
-        if "run" in f:
-            label = f["run"]
-        else:
-            label = f"{f.get('algo.name', '?')} + {f.get('encoder.name', '?')}"
-            extra = [f"{k}={f.get(k, '-')}" for k in differ if k not in ("algo.name", "encoder.name", "run")]
-            label = " ".join([label, *extra])
-        n = len(groups[key])
-        out.append((label + (f" ({n} seeds)" if n > 1 else ""), groups[key]))
-    return out
-
-
-def smooth(y: np.ndarray, n: int) -> np.ndarray:
-    """Trailing moving average over ``n`` logged points (``n <= 1``: unchanged)."""
-    if n <= 1 or len(y) < 2:
-        return y
-    c = np.cumsum(np.insert(y, 0, 0.0))
-    k = np.minimum(np.arange(1, len(y) + 1), n)
-    return (c[1:] - c[np.arange(1, len(y) + 1) - k]) / k
-
-
-def band(series: list[np.ndarray], n_smooth: int) -> tuple[np.ndarray, ...]:
-    """Mean and min/max of several runs' ``[n, 2]`` series on a common frame grid (their overlap)."""
-    series = [np.column_stack((s[:, 0], smooth(s[:, 1], n_smooth))) for s in series]
-    if len(series) == 1:
-        s = series[0]
-        return s[:, 0], s[:, 1], s[:, 1], s[:, 1]
-    lo, hi = max(s[0, 0] for s in series), min(s[-1, 0] for s in series)
-    x = np.unique(np.concatenate([s[:, 0] for s in series]))
-    x = x[(x >= lo) & (x <= hi)]
-    ys = np.stack([np.interp(x, s[:, 0], s[:, 1]) for s in series])
-    return x, ys.mean(0), ys.min(0), ys.max(0)
-
-
-PANELS = (
-    ("success / collision rate", (("success_rate", "-", "training success"), ("probe_*_success", "o--",
-                                                                                "probe success"),
-                                  ("collision_rate", ":", "training collision"))),
-    ("episode return", (("episode_return", "-", "return"),)),
-    ("critic loss", (("loss_critic", "-", "critic"),)),
-    ("actor loss", (("loss_actor", "-", "actor"),)),
-)
-
-
-def plot_runs(runs: list[Path], out: Path, n_smooth: int = 20) -> Path:
-    """Curves of one or several runs (see the module docstring); returns the PNG path."""
-    logs = {Path(r): read_scalars(Path(r)) for r in runs}
-    groups = group_runs(list(logs))
-    import fnmatch
-
-    panels = [(title, spec) for title, spec in PANELS
-              if any(fnmatch.filter(lg, pat) for lg in logs.values() for pat, _, _ in spec)]
-    if not panels:
-        raise ValueError(f"no known scalars in {', '.join(map(str, runs))} (expected success_rate, loss_critic, ...)")
-    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.6), squeeze=False)
-    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    several = len(groups) > 1
-    for gi, (label, members) in enumerate(groups):
-        c = colours[gi % len(colours)]
-        for ax, (title, spec) in zip(axes[0], panels, strict=True):
-            for pat, style, name in spec:
-                names = sorted({n for r in members for n in fnmatch.filter(logs[r], pat)})
-                for sname in names:
-                    series = [logs[r][sname] for r in members if sname in logs[r]]
-                    k = n_smooth if sname.startswith("loss") else 1
-                    x, m, lo, hi = band(series, k)
-                    if several:  # colours name the runs (one legend under the figure), line styles the curves
-                        lab = name if len(spec) > 1 and gi == 0 else None
-                    else:
-                        lab = f"{label}: {name}" if len(spec) > 1 else label
-                    ax.plot(x, m, style, color=c, lw=1.3, ms=3, label=lab)
-                    if len(series) > 1:
-                        ax.fill_between(x, lo, hi, color=c, alpha=0.2, lw=0)
-            ax.set_title(title, fontsize=10)
-            ax.set_xlabel("environment frames")
-            ax.ticklabel_format(axis="x", style="sci", scilimits=(0, 3))
-    for ax, (title, _) in zip(axes[0], panels, strict=True):
-        if title.startswith("success"):
-            ax.set_ylim(-0.02, 1.02)
-        if title == "critic loss" and all(ln.get_ydata().min() > 0 for ln in ax.get_lines()):
-            ax.set_yscale("log")  # a diverging critic loss spans orders of magnitude
-        if ax.get_legend_handles_labels()[0]:
-            ax.legend(fontsize=7)
-    if any(len(m) > 1 for _, m in groups):
-        fig.suptitle(f"mean over seeds, band = min-max; losses smoothed over {n_smooth} logged points", fontsize=9)
-    bottom = 0.0
-    if several:
-        from matplotlib.lines import Line2D
-
-        handles = [Line2D([], [], color=colours[i % len(colours)], lw=2) for i in range(len(groups))]
-        fig.legend(handles, [label for label, _ in groups], loc="lower center", ncol=min(len(groups), 2), fontsize=8,
-                   frameon=False)
-        bottom = 0.06 * ((len(groups) + 1) // 2) + 0.02  # room for the legend's rows
-    return _save(fig, out, rect=(0, bottom, 1, 1))
-
-
-def plot_command(argv: list[str]) -> Path:
-    p = _Parser(prog="crowdbench plot", description="Training curves of runs (success, collision, return, losses).")
-    p.add_argument("runs", nargs="+", metavar="RUN", help="run directories (RUN/logs/scalars/*.csv)")
-    p.add_argument("--out", default=None, metavar="FILE.png", help="default: <first RUN>/curves.png")
-    p.add_argument("--smooth", type=int, default=20, help="moving average over N logged points (N >= 1)")
-    a = p.parse_args(argv)
-    if a.smooth < 1:
-        p.error(f"--smooth: must be an integer >= 1 (got {a.smooth})")
-    out = Path(a.out) if a.out else Path(a.runs[0]) / "curves.png"
-    check_writable_file(out)
-    return plot_runs([Path(r) for r in a.runs], out, a.smooth)
-
-
 def main(command: str, argv: list[str]) -> int:
-    out = viz_command(argv) if command == "viz" else plot_command(argv)
+    if command == "plot":
+        from crowdbench.viz.curves import plot_command
+
+        out = plot_command(argv)
+    else:
+        out = viz_command(argv)
     print(f"wrote {out}")
     return 0
