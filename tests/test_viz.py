@@ -176,6 +176,47 @@ def test_viz_png_episode_and_grid(tmp_path, capsys):
     assert "wrote" in capsys.readouterr().out
 
 
+def test_viz_video_one_frame_per_step(tmp_path, monkeypatch, capsys):
+    """`viz --video FILE.gif`: as many frames as the episode has steps, drawn (not blank); an MP4 without
+    ffmpeg is a one-line error naming it, written by nothing."""
+    from matplotlib import animation
+    from PIL import Image
+
+    evaluate(StraightToGoal(), ["hotel"], 3, out_dir=tmp_path, save_episodes=True)
+    rows = [json.loads(line) for line in (tmp_path / "episodes.jsonl").read_text().splitlines()]
+    row = rows[1]
+    assert main(["viz", str(tmp_path), "--episode", str(row["episode"]), "--video", str(tmp_path / "ep.gif")]) == 0
+    with Image.open(tmp_path / "ep.gif") as gif:
+        assert gif.n_frames == len(row["robot_xy"]) - 1 > 5  # one frame per step
+        assert gif.info["duration"] == 250  # real time: dt = 0.25 s per frame
+        first = np.asarray(gif.convert("RGB"))
+        gif.seek(gif.n_frames - 1)
+        last = np.asarray(gif.convert("RGB"))
+    assert first.std() > 10 and np.abs(first.astype(int) - last).sum() > 0  # the robot moved between them
+    assert main(["viz", str(tmp_path), "--video", str(tmp_path / "fast.gif"), "--fps", "10"]) == 0
+    with Image.open(tmp_path / "fast.gif") as gif:
+        assert gif.n_frames == len(rows[0]["robot_xy"]) - 1 and gif.info["duration"] == 100
+    capsys.readouterr()
+    monkeypatch.setattr(animation.writers, "is_available", lambda name: False)
+    assert main(["viz", str(tmp_path), "--video", str(tmp_path / "ep.mp4")]) == 2
+    err = capsys.readouterr().err
+    assert "needs ffmpeg" in err and err.count("\n") == 1 and not (tmp_path / "ep.mp4").exists()
+
+
+def test_viz_video_mp4_frame_count(tmp_path):
+    from matplotlib import animation
+
+    if not (animation.writers.is_available("ffmpeg") and shutil.which("ffprobe")):
+        pytest.skip("an MP4 needs ffmpeg (Debian package: ffmpeg)")
+    evaluate(StraightToGoal(), ["hotel"], 2, out_dir=tmp_path, save_episodes=True)
+    row = json.loads((tmp_path / "episodes.jsonl").read_text().splitlines()[0])
+    assert main(["viz", str(tmp_path), "--video", str(tmp_path / "ep.mp4")]) == 0
+    probe = subprocess.run(["ffprobe", "-v", "error", "-count_frames", "-select_streams", "v:0", "-show_entries",
+                            "stream=nb_read_frames", "-of", "csv=p=0", str(tmp_path / "ep.mp4")],
+                           capture_output=True, text=True, check=True)
+    assert int(probe.stdout.strip()) == len(row["robot_xy"]) - 1
+
+
 def fake_run(root, name, seed, frames, success, config_extra=None):
     """A run directory as `crowdbench run` leaves it: TorchRL CSVLogger scalars + a checkpoint config."""
     from torchrl.record.loggers.csv import CSVLogger
@@ -218,6 +259,9 @@ def test_plot_overlays_runs_with_seed_band(tmp_path):
     (["viz", "{tmp}/ev", "--scene", "eth"], "scene 'eth' not in"),
     (["viz", "{tmp}/ev", "--episode", "x"], "invalid int value: 'x'"),
     (["viz", "{tmp}/ev", "--grid", "0"], "--grid must be >= 1"),
+    (["viz", "{tmp}/ev", "--video", "{tmp}/ep.avi"], "the file must end in .gif or .mp4"),
+    (["viz", "{tmp}/ev", "--video", "{tmp}/ep.gif", "--grid", "2"], "--video FILE animates one episode"),
+    (["viz", "{tmp}/ev", "--video", "{tmp}/ep.gif", "--fps", "0"], "--fps must be in (0, 100]"),
     (["plot", "{tmp}"], "no training log in"),
     (["plot", "{tmp}/nope"], "run directory not found:"),
     (["eval", "policy=straight", "eval.scenes=[hotel]", "eval.episodes=2", "viz.record=true", "viz.episodes=[7]"],
@@ -239,4 +283,4 @@ def test_bad_input_one_line_error(args, message, tmp_path, capsys):
     assert main(args) == 2
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1, err
-    assert not (tmp_path / "out").exists() and not list(tmp_path.rglob("*.png"))
+    assert not (tmp_path / "out").exists() and not list(tmp_path.rglob("*.png")) and not list(tmp_path.rglob("*.gif"))
