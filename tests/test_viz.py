@@ -176,6 +176,31 @@ def test_viz_png_episode_and_grid(tmp_path, capsys):
     assert "wrote" in capsys.readouterr().out
 
 
+def test_figures_equal_scales_and_a_legend_for_humans(tmp_path, monkeypatch):
+    """A grid shows every episode at one scale (same metres per panel) and time colour; the figures'
+    legends name the humans' paths; the PNG is cropped to its content."""
+    from crowdbench.viz import figures
+
+    evaluate(StraightToGoal(), [SCENE], 4, out_dir=tmp_path, save_episodes=True)
+    rows = [json.loads(line) for line in (tmp_path / "episodes.jsonl").read_text().splitlines()]
+    figs = []
+    real_save = figures._save
+    monkeypatch.setattr(figures, "_save", lambda fig, out, **kw: (figs.append(fig), real_save(fig, out, **kw))[1])
+    figures.grid_figure(rows, tmp_path / "grid.png")
+    panels = [ax for ax in figs[0].axes if ax.get_title().startswith(SCENE)]
+    assert len(panels) == 4
+    sizes = {(round(np.diff(ax.get_xlim())[0], 6), round(np.diff(ax.get_ylim())[0], 6)) for ax in panels}
+    assert len(sizes) == 1  # equal scales
+    assert any("human within sensing range" in t.get_text() for lg in figs[0].legends for t in lg.get_texts())
+    figures.episode_figure(rows[0], tmp_path / "ep.png")
+    texts = [t.get_text() for t in figs[1].axes[0].get_legend().get_texts()]
+    assert {"start", "goal", "human within sensing range", "human out of range"} <= set(texts)
+    img = non_trivial_png(tmp_path / "ep.png")
+    for blank in ((img.min(-1) > 0.99).all(1), (img.min(-1) > 0.99).all(0)):  # rows, columns
+        ink = np.nonzero(~blank)[0]
+        assert ink[0] < 12 and len(blank) - 1 - ink[-1] < 12  # blank margins under 0.1 in (120 dpi)
+
+
 def test_viz_video_one_frame_per_step(tmp_path, monkeypatch, capsys):
     """`viz --video FILE.gif`: as many frames as the episode has steps, drawn (not blank); an MP4 without
     ffmpeg is a one-line error naming it, written by nothing."""
