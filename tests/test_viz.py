@@ -274,6 +274,19 @@ def test_plot_overlays_runs_with_seed_band(tmp_path):
     assert np.allclose(mean, [0.1, 0.2, 0.5]) and np.allclose(lo, [0.0, 0.2, 0.4]) and np.allclose(hi, [0.2, 0.2, 0.6])
     assert main(["plot", str(a), str(b), str(c), "--out", str(tmp_path / "curves.png")]) == 0
     non_trivial_png(tmp_path / "curves.png")
+    from crowdbench.viz import curves
+
+    figs = []
+    real_save = curves._save
+    curves._save = lambda fig, out, **kw: (figs.append(fig), real_save(fig, out, **kw))[1]
+    try:
+        curves.plot_runs([a, b, c], tmp_path / "grid.png")
+    finally:
+        curves._save = real_save
+    drawn = [ax for ax in figs[0].axes if ax.get_title()]
+    assert len(drawn) == 3 and len({round(ax.get_position().x0, 3) for ax in drawn}) == 2  # two columns, not a strip
+    colours = [ln.get_color() for ln in drawn[0].get_lines()]
+    assert len(set(colours)) == 2  # one colour per group of runs
     assert main(["plot", str(a)]) == 0 and (a / "curves.png").exists()
 
 

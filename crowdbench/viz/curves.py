@@ -187,7 +187,7 @@ def _panel(ax, title: str, spec, groups, logs, colours, n_smooth: int) -> None:
     ax.set_title(title, fontsize=10)
     ax.set_xlabel("environment frames", fontsize=8)
     ax.ticklabel_format(axis="x", style="sci", scilimits=(0, 3))
-    ax.tick_params(labelsize=7)
+    ax.tick_params(which="both", labelsize=7)
     ax.grid(alpha=0.3)
     if title.startswith("success"):
         ax.set_ylim(-0.02, 1.02)
@@ -211,23 +211,22 @@ def plot_runs(runs: list[Path], out: Path, n_smooth: int = 20) -> Path:
         raise ValueError(f"no known scalars in {', '.join(map(str, runs))} (expected success_rate, loss_critic, ...)")
     cols = min(len(panels), 2)
     rows = math.ceil(len(panels) / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(4.4 * cols, 3.0 * rows), squeeze=False)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.4 * cols, 3.0 * rows), squeeze=False, layout="constrained")
     colours = distinct_colours(len(groups))
     for ax, (title, spec) in zip(axes.flat, panels, strict=False):
         _panel(ax, title, spec, groups, logs, colours, n_smooth)
-    for ax in axes.flat[len(panels):]:
+    spare = list(axes.flat[len(panels):])
+    for ax in spare:
         ax.axis("off")
-    top = 1.0
     if any(len(m) > 1 for _, m in groups):
         fig.suptitle(f"mean over seeds, band = min-max; losses smoothed over {n_smooth} logged points", fontsize=9)
-        top = 1 - 0.25 / fig.get_figheight()
-    bottom = 0.0
-    if len(groups) > 1:
-        handles = [Line2D([], [], color=c, lw=2) for c in colours]
-        ncol = min(len(groups), 2)
-        fig.legend(handles, [label for label, _ in groups], loc="lower center", ncol=ncol, fontsize=8, frameon=False)
-        bottom = (0.22 * math.ceil(len(groups) / ncol) + 0.1) / fig.get_figheight()  # the legend's rows, in inches
-    return _save(fig, out, rect=(0, bottom, 1, top))
+    if len(groups) > 1:  # the groups' colours: in the grid's empty cell, else under the grid
+        handles, labels = [Line2D([], [], color=c, lw=2) for c in colours], [label for label, _ in groups]
+        if spare:
+            spare[0].legend(handles, labels, loc="center", fontsize=8, frameon=False, title="runs", title_fontsize=8)
+        else:
+            fig.legend(handles, labels, loc="outside lower center", ncol=min(len(groups), 2), fontsize=8, frameon=False)
+    return _save(fig, out)
 
 
 def plot_command(argv: list[str]) -> Path:
