@@ -5,14 +5,21 @@ the results (no evaluation). Submission text enters the markdown escaped (:func:
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 from crowdbench.envs.protocol import EVAL_SCENES, PAPER_SCENES, PROTOCOL_VERSION
-from crowdbench.eval import rate_ci
 from crowdbench.leaderboard.metrics import sections
 from crowdbench.leaderboard.schema import KINDS, link_problem
-from crowdbench.leaderboard.stats import clip, ranked, seeds_interval
+from crowdbench.leaderboard.stats import (  # noqa: F401 - the cells' functions, as render.* for the renderers
+    average_cell,
+    average_stat,
+    fmt,
+    group_stat,
+    interval,
+    ranked,
+    scene_cell,
+    seeds_cell,
+)
 from crowdbench.leaderboard.text import diff_rows, md  # noqa: F401 - diff_rows: render.diff_rows for --check
 
 
@@ -23,77 +30,6 @@ def markers(name: str) -> tuple[str, str]:
 
 BLOCK_START, BLOCK_END = markers("results")  # the top-level README's block
 DOCS_START, DOCS_END = markers("docs-results")  # docs/results.md
-
-
-def fmt(v, digits: int) -> str:
-    return "—" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{digits}f}"
-
-
-def interval(mean: float, lo: float, hi: float, metric: str, digits: int) -> str:
-    """``mean [lo, hi]`` with the interval clipped to the metric's range (stats.RANGES)."""
-    lo, hi = clip(metric, lo, hi)
-    return f"{mean:.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"
-
-
-def scene_cell(r: dict, scene: str, metric: str, digits: int) -> tuple[float | None, str]:
-    v = r["scenes"].get(scene, {}).get(metric)
-    if not v or v["mean"] is None:
-        return None, "—"
-    return v["mean"], interval(v["mean"], *v["ci95"], metric, digits)
-
-
-def average_stat(r: dict, metric: str) -> tuple[float | None, list]:
-    """Paper-scene average and its interval (unclipped; ``[None, None]``: none): pooled Wilson interval
-    for rates (equal episode counts), combined normal interval for means."""
-    vals = [r["scenes"].get(s, {}).get(metric) for s in PAPER_SCENES]
-    if any(v is None or v["mean"] is None for v in vals):
-        return None, [None, None]
-    mean = sum(v["mean"] for v in vals) / len(vals)
-    if metric.endswith("_rate"):
-        n = sum(v["n"] for v in vals)
-        k = round(sum(v["mean"] * v["n"] for v in vals))
-        return mean, rate_ci(k, n)["ci95"] if len({v["n"] for v in vals}) == 1 else [None, None]
-    half = math.sqrt(sum(((v["ci95"][1] - v["ci95"][0]) / 2) ** 2 for v in vals)) / len(vals)
-    return mean, [mean - half, mean + half]
-
-
-def average_cell(r: dict, metric: str, digits: int) -> tuple[float | None, str]:
-    mean, ci = average_stat(r, metric)
-    if mean is None:
-        return None, "—"
-    return mean, fmt(mean, digits) if ci[0] is None else interval(mean, *ci, metric, digits)
-
-
-def group_stat(g: list[dict], cols: list[str], metric: str) -> tuple[float | None, float | None, float | None]:
-    """Mean and clipped 95% interval of entry ``g`` over the scenes ``cols`` (one scene, or the four paper
-    scenes: their average), as its table cell shows them (numbers for the plots; None: missing)."""
-    if len(g) > 1:
-        runs = [[r["scenes"].get(s, {}).get(metric) for s in cols] for r in g]
-        if any(v is None or v["mean"] is None for parts in runs for v in parts):
-            return None, None, None
-        m = sum(sum(v["mean"] for v in parts) / len(parts) for parts in runs) / len(runs)
-        return (m, *seeds_interval(runs, metric))
-    if len(cols) == 1:
-        v = g[0]["scenes"].get(cols[0], {}).get(metric)
-        return (None, None, None) if not v or v["mean"] is None else (v["mean"], *clip(metric, *v["ci95"]))
-    if list(cols) != list(PAPER_SCENES):  # an unofficial subset's plain mean
-        vals = [(g[0]["scenes"].get(s, {}).get(metric) or {}).get("mean") for s in cols]
-        return (None if None in vals else sum(vals) / len(vals)), None, None
-    mean, ci = average_stat(g[0], metric)
-    return (mean, None, None) if ci[0] is None else (mean, *clip(metric, *ci))
-
-
-def seeds_cell(runs: list[list[dict] | None], metric: str, digits: int,
-               intervals: bool = True) -> tuple[float | None, str]:
-    """Several seeds of one entry: the mean over seeds of each run's mean over its ``parts`` (one scene, or
-    the four of the paper-scene average) and, with ``intervals``, its 95% two-level bootstrap interval
-    (crowdbench/leaderboard/stats.py)."""
-    if not runs or any(not parts or any(not v or v["mean"] is None for v in parts) for parts in runs):
-        return None, "—"
-    m = sum(sum(v["mean"] for v in parts) / len(parts) for parts in runs) / len(runs)
-    if not intervals:
-        return m, fmt(m, digits)
-    return m, interval(m, *seeds_interval(runs, metric), metric, digits)
 
 
 def label(group: list[dict], escape: bool = True) -> str:
