@@ -133,7 +133,7 @@ class Site:
         cols = SUMMARY + (CROWD if track.protocol == "v2" else []) + columns(home)
         rows = [self.entry_cells(rank, g) + [td(*group_cell(g, track, m, d)) for m, _, d in cols] for rank, g in order]
         head = [("#", True), ("method", False), ("trained on", False), ("seeds", True), *((c, True) for _, c, _ in cols)]
-        return table(head, rows, cls="sortable ranking", tid=f"{name}.summary")
+        return ['<div class="scroll">', *table(head, rows, cls="sortable ranked summary", tid=f"{name}.summary"), "</div>"]
 
     def track_section(self, name: str) -> list[str]:
         track, results = TRACKS[name], self.by_track[name]
@@ -146,14 +146,14 @@ class Site:
              (f"<p>Ranked (#) by success on {e(where)}: baselines, the oracle where it applies and the entries "
               "trained on this track. Each cell: mean [95% interval] of a run, or over several seeds of one entry "
               "(two-level bootstrap; n in the <em>seeds</em> column). Click a column header to sort.</p>"),
-             *self.plot(name), *self.summary_table(name, order), "<p>Per scene, every metric (same ranking):</p>"]
+             *self.summary_table(name, order), *self.plot(name), "<p>Per scene, every metric (same ranking):</p>"]
         for metric in metrics_of(results):
             title, digits = metric_info(metric)
             rows = [self.entry_cells(rank, g) + [td(*table_cell(g, c, metric, digits)) for c in cols]
                     for rank, g in order]
             head = [("#", True), ("method", False), ("trained on", False), ("seeds", True), *((c, True) for c in cols)]
             L += [f'<details{" open" if metric in OPEN else ""}>', f"<summary>{e(title)}</summary>",
-                  *table(head, rows, tid=f"{name}.{metric}"), "</details>"]
+                  *table(head, rows, cls="sortable ranked", tid=f"{name}.{metric}"), "</details>"]
         return [*L, "</section>"]
 
     def transfer_section(self) -> list[str]:
