@@ -77,10 +77,15 @@ def make_logger(kind: str, out_dir: Path, cfg: DictConfig | None = None, write=p
 
 
 def close_logger(logger, failed: bool = False) -> None:
-    """Flush and close ``logger``'s files; end its W&B run (exit code 1 if training ``failed``)."""
+    """Flush and close ``logger``'s files; end its W&B run (exit code 1 if training ``failed``: then an error
+    while closing is ignored, the training error is the one reported)."""
     for lg in getattr(logger, "loggers", (logger,)):
-        finish = getattr(lg.experiment, "finish", None)
-        if callable(finish):
-            finish(exit_code=1 if failed else 0)
-        else:
-            lg.shutdown()
+        try:
+            finish = getattr(lg.experiment, "finish", None)
+            if callable(finish):
+                finish(exit_code=1 if failed else 0)
+            else:
+                lg.shutdown()
+        except Exception:
+            if not failed:
+                raise
