@@ -171,7 +171,7 @@ def test_a_signal_stops_the_pool_and_every_worker(tmp_path, how):
 
     proc = subprocess.Popen([sys.executable, "-m", "crowdbench", "leaderboard", "--root", str(root), "--jobs", "2",
                              "--episodes", "3", "--scenes", "hotel", "--tracks", "v1"],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, preexec_fn=own_group)
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, preexec_fn=own_group)  # noqa: PLW1509 - setpgrp, SIGINT reset only
     tree: set[int] = set()
     for _ in range(600):  # until both workers run (a pool process each, each with its worker)
         tree |= _descendants(proc.pid)
