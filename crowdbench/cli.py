@@ -197,7 +197,7 @@ def main(argv: list[str] | None = None) -> int:
             if wants_hydra(overrides):
                 return hydra_flags(command, overrides)
         if command in ("viz", "plot"):
-            from crowdbench.viz.figures import main as viz_main
+            from crowdbench.viz.commands import main as viz_main
 
             try:
                 return viz_main(command, overrides)

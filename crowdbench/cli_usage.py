@@ -24,9 +24,9 @@ COMMANDS = {  # command -> (its arguments, what it does)
                     "validate and evaluate leaderboard submissions, regenerate the tables"),
     "submit": ("RUN|SWEEP_DIR [--name NAME] [--entry LABEL] [--root DIR]",
                "a training run (or every finished run of a sweep) -> leaderboard/submissions/"),
-    "viz": ("OUT|episodes.jsonl [--episode N] [--scene S] [--grid K] [--out FILE.png]",
-            "a figure of recorded episodes"),
-    "plot": ("RUN [RUN ...] [--out FILE.png] [--smooth N]", "training curves of runs"),
+    "viz": ("OUT|episodes.jsonl [--episode N] [--scene S] [--grid K] [--out FILE.png] [--video FILE.gif|.mp4]",
+            "a figure or a video of recorded episodes"),
+    "plot": ("RUN [RUN ...] [--out FILE.png] [--smooth N]", "training curves of runs (CSV or TensorBoard logs)"),
 }
 
 

@@ -271,7 +271,7 @@ class TrainConfig:
     probe_every: int = bounded(28672, ge=1)  # frames
     probe_scene: str = "students003"
     probe_episodes: int = bounded(50, ge=1)
-    logger: str = bounded("csv", choices=("csv", "tensorboard"))
+    logger: str = bounded("csv", choices=("csv", "tensorboard", "wandb"))  # crowdbench/algos/loggers.py
     progress_reward: float = 0.1
     human_dropout: float = bounded(0.0, ge=0, le=1)  # a probability
     # imitation warm start before RL (crowdbench/algos/pretrain.py); a resumed run never repeats it

@@ -151,7 +151,8 @@ def test_seeds_grouped(tmp_path):
         toy_checkpoint(d / "checkpoint.pt", MLP)
     assert run(root, log=lambda m: None, **FAST) == 0
     readme = (root / "README.md").read_text()
-    assert re.search(r"\| Toy MLP \| 2 \| \d\.\d{3} ± \d\.\d{3} \|", readme)  # mean ± sd across seeds
+    # the mean over seeds [95% two-level bootstrap interval]
+    assert re.search(r"\| Toy MLP \| 2 \| \d\.\d{3} \[\d\.\d{3}, \d\.\d{3}\] \|", readme)
     assert "## Per-seed results" in readme and "| Toy MLP | toy_s1 | 1 |" in readme
 
 
@@ -286,7 +287,10 @@ def test_fingerprint_covers_every_module_an_evaluation_loads(tmp_path):
     hashed = set(code_files())
     # everything loaded is hashed, except the harness package itself (versioned by HARNESS_VERSION) and the
     # published lists' hashes (fixed_lists.py: a check that can refuse an evaluation, never change a number)
-    assert {p.relative_to(PACKAGE_DIR).parts[0] for p in loaded - hashed} == {"leaderboard", "fixed_lists.py"}
+    # and the plots' colours (viz/palette.py: drawn after the evaluation, never a number)
+    assert {p.relative_to(PACKAGE_DIR).parts[0] for p in loaded - hashed} == {"leaderboard", "fixed_lists.py", "viz"}
+    assert {p.relative_to(PACKAGE_DIR).as_posix() for p in loaded - hashed if p.parent.name == "viz"} == \
+        {"viz/__init__.py", "viz/palette.py"}
     assert PACKAGE_DIR / "policies.py" in hashed  # the registry builds every baseline
     assert PACKAGE_DIR / "algos" / "train.py" not in hashed  # training code does not invalidate results
 
@@ -351,12 +355,17 @@ def test_readme_block_is_rendered_from_the_committed_results():
     results = committed_results()
     committed = render.read_block((REPO / "README.md").read_text())
     assert render.render_block(results, list(EVAL_SCENES), None) == committed
-    assert "| ORCA | 1 | 0.892 | 0.884 |" in committed and "ORCA 0.935 (1.656 dangers per episode)" in committed
+    assert "| 3 | ORCA | 1 | 0.935 | 0.892 | 0.884 |" in committed  # ranked by the paper-scene average, first
+    assert "ORCA 0.935 [0.918, 0.949] (1.656 [1.399, 1.913] dangers per episode)" in committed
     (orca,) = [r for r in results if r["meta"]["submission"] == "orca"]
     orca["scenes"]["hotel"]["success_rate"]["mean"] = 0.5
-    row, sentence = render.diff_rows(committed, render.render_block(results, list(EVAL_SCENES), None))
-    assert row.startswith("[] row 'ORCA': differs") and "0.500" in row
-    assert sentence.startswith("[] row 'Average success") and "ORCA 0.816" in sentence  # the average moved too
+    rows = render.diff_rows(committed, render.render_block(results, list(EVAL_SCENES), None))
+    (row,) = [m for m in rows if m.startswith("[] row 'ORCA': differs")]  # rows named by method, not rank
+    assert "| 7 | ORCA | 1 | 0.816 |" in row and "0.500" in row  # a lower average, a lower rank
+    ranks = [m for m in rows if m.startswith("[] row '") and "Average" not in m and "ORCA" not in m]
+    assert len(ranks) == 3  # the three entries ORCA fell behind moved up one rank (RGL shared its rank)
+    (sentence,) = [m for m in rows if m.startswith("[] row 'Average success")]
+    assert "ORCA 0.816" in sentence  # the average moved too
 
 
 def test_docs_blocks_are_rendered_from_the_committed_results():
@@ -374,18 +383,21 @@ def test_docs_blocks_are_rendered_from_the_committed_results():
     for text in (docs, reproduction):
         assert render.regenerate(text, results, list(EVAL_SCENES), None) == text
     committed = render.read_block(docs, "docs-results")
-    assert "| ORCA | 1 | 0.935 | 1.656 |" in committed
+    assert "| 3 | ORCA | 1 | 0.935 [0.918, 0.949] | 1.656 [1.399, 1.913] |" in committed
     assert "| orca | 0.892 [0.847, 0.925] | 0.884 [0.838, 0.918] |" in committed  # Wilson, from results.json
     (orca,) = [r for r in results if r["meta"]["submission"] == "orca"]
     orca["scenes"]["students003"]["jerk"]["mean"] = 9.0
     (row,) = render.diff_rows(committed, render.render_docs_block(results, list(EVAL_SCENES), None))
     assert row.startswith("[Jerk (m/s^3)] row 'orca': differs") and "9.00 [" in row
     orca["scenes"]["hotel"]["success_rate"]["mean"] = 0.5
-    rows = render.diff_rows(committed, render.render_docs_block(results, list(EVAL_SCENES), None))
-    assert [r.split(":")[0] for r in rows] == ["[] row 'ORCA'", "[Success rate] row 'orca'", "[Jerk (m/s^3)] row 'orca'"]
+    rows = [r.split(":")[0] for r in render.diff_rows(committed, render.render_docs_block(results, list(EVAL_SCENES),
+                                                                                           None))]
+    assert {"[] row 'ORCA'", "[Success rate] row 'orca'", "[Jerk (m/s^3)] row 'orca'"} <= set(rows)
+    assert all(r.startswith("[] row '") for r in rows if "orca" not in r)  # the others: their rank only
     old = render.read_block(reproduction, "reproduction-success")
-    (row,) = render.diff_rows(old, render.BLOCKS["reproduction-success"](results, list(EVAL_SCENES), None))
-    assert row.startswith("[] row 'ORCA': differs") and "0.500" in row
+    rows = render.diff_rows(old, render.BLOCKS["reproduction-success"](results, list(EVAL_SCENES), None))
+    (row,) = [m for m in rows if m.startswith("[] row 'ORCA': differs")]
+    assert "0.500" in row
 
 
 def test_readme_block_written_checked_and_never_touched_by_a_scratch_root(tmp_path, monkeypatch, capsys):

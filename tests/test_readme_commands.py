@@ -69,6 +69,7 @@ INVOCATIONS: dict[str, list[list[str]]] = {
     "crowdbench run ... algo.replay=prioritized algo.per_weights=true":
         [["run", *RUN, "algo.replay=prioritized", "algo.per_weights=true"]],
     "crowdbench run ... train.logger=tensorboard": [["run", *RUN, "train.logger=tensorboard"]],
+    "crowdbench run ... train.logger=wandb": [["run", *RUN, "train.logger=wandb"]],  # offline: Runner's env
     "crowdbench run -m encoder=gatedgcn,gcn,mlp seed=0,1,2":
         [["run", "-m", "encoder=gatedgcn,gcn,mlp", "seed=0,1,2", *SWEEP, "out={tmp}/sweep9"]],
     # seed 0 of each of the 5 rows: the leaderboard commands below then evaluate 6 submissions, not 16
@@ -127,6 +128,8 @@ INVOCATIONS: dict[str, list[list[str]]] = {
         [["viz", "{out}", "--episode", "0", "--scene", "hotel", "--out", "{tmp}/ep.png"]],
     "crowdbench viz OUT --grid K [--scene S]": [["viz", "{out}", "--grid", "2", "--scene", "hotel",
                                                  "--out", "{tmp}/grid.png"]],
+    "crowdbench viz OUT [--episode N] --video FILE.gif\\|FILE.mp4 [--fps F]":  # mp4: tests/test_viz.py
+        [["viz", "{out}", "--episode", "0", "--video", "{tmp}/ep.gif"]],
     "crowdbench plot RUN [RUN ...] [--out FILE.png] [--smooth N]":
         [["plot", "{run}", "{run}", "--out", "{tmp}/curves.png", "--smooth", "2"]],
 }
@@ -197,7 +200,10 @@ class Runner:
                        "lb": tmp / "lb", "selfplay": tmp / "selfplay"}
         (tmp / "lb" / "submissions").mkdir(parents=True)
         self.done: dict[str, list[str]] = {}
-        self.env = {**os.environ, "OMP_NUM_THREADS": "1", "RL_WARNINGS": "False"}
+        # train.logger=wandb: nothing sent, W&B's settings and cache under tmp
+        self.wandb = {"WANDB_MODE": "offline", "WANDB_SILENT": "true", "WANDB_DIR": str(tmp),
+                      "WANDB_CACHE_DIR": str(tmp / "wandb-cache"), "WANDB_CONFIG_DIR": str(tmp / "wandb-config")}
+        self.env = {**os.environ, "OMP_NUM_THREADS": "1", "RL_WARNINGS": "False", **self.wandb}
 
     def ensure(self, command: str, capsys) -> list[str]:
         """The failures of ``command``'s invocations (empty: all exited 0); a failed prerequisite fails it."""
@@ -212,7 +218,16 @@ class Runner:
                                    text=True, timeout=900, check=False, cwd=self.places["tmp"])
                 rc, err = p.returncode, p.stderr[-500:]
             else:
-                rc = main(args)
+                saved = {k: os.environ.get(k) for k in self.wandb}
+                os.environ.update(self.wandb)
+                try:
+                    rc = main(args)
+                finally:
+                    for k, v in saved.items():
+                        if v is None:
+                            os.environ.pop(k)
+                        else:
+                            os.environ[k] = v
                 err = capsys.readouterr().err[-3000:]
             if rc != 0:
                 failed.append(f"crowdbench {' '.join(args)}: exit {rc}: {err}")

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 from conftest import require_system
+from PIL import Image
 from test_leaderboard import FAST, MLP, add_straight, toy_checkpoint, write_yaml
 
 from crowdbench.leaderboard import run
@@ -48,10 +49,22 @@ def test_site_files_escaping_and_cache(board, tmp_path):
     root, site, log = board
     index = (site / "index.html").read_text()
     assert {p.name for p in (site / "entries").iterdir()} == {"orca.html", "straight.html", "toy.html"}
-    for name in ("orca", "straight", "toy"):  # a figure and a recording per entry, from the worker for toy
+    for name in ("orca", "straight", "toy"):  # a figure, a replay and a recording per entry, from the worker for toy
         manifest = json.loads((site / "media" / name / "media.json").read_text())
         assert (site / "media" / name / manifest["figure"]).stat().st_size > 1000
         assert [(site / "media" / name / e["recording"]).is_file() for e in manifest["episodes"]] == [True]
+        (ep,) = manifest["episodes"]
+        with Image.open(site / "media" / name / ep["replay"]) as gif:  # one frame per step of the episode
+            assert gif.format == "GIF" and gif.n_frames == ep["steps"] > 1
+        assert f'src="../media/{name}/{ep["replay"]}"' in (site / "entries" / f"{name}.html").read_text()
+    # every track's table ranked by success: the rank column, then success (the first metric) not increasing
+    summary = index.split('id="v1.summary"')[1].split("</table>")[0]
+    head = re.findall(r"<th [^>]*>([^<]*)</th>", summary)
+    assert head[:5] == ["#", "method", "trained on", "seeds", "success"]
+    rows = [re.findall(r'<td data-sort="([^"]*)"', row) for row in summary.split("<tbody>")[1].split("</tr>")[:-1]]
+    assert [float(r[0]) for r in rows] == [1, 2, 3]
+    success = [float(r[4]) for r in rows]
+    assert success == sorted(success, reverse=True) and success[0] > success[-1]
     # submission text is escaped everywhere: no script, no tag from a submission
     orca_page = (site / "entries" / "orca.html").read_text()
     for text in (index, orca_page):
@@ -101,9 +114,12 @@ def test_site_in_a_browser(board, tmp_path):
         res = results(root)
         by_label = {label([r], escape=False): r for r in res.values()}
         shown = {}
+        ranks = []
         for row in rows:
             cells = row.find_elements(By.TAG_NAME, "td")
-            shown[cells[0].text] = cells[3].text
+            shown[cells[1].text] = cells[4].text
+            ranks.append(cells[0].text)
+        assert ranks == ["1", "2", "3"]  # ranked by success, the default order
         # the same numbers as results.json, formatted as leaderboard/README.md formats them
         assert shown == {lab: table_cell([r], "hotel", "success_rate", 3)[1] for lab, r in by_label.items()}
         assert shown["Straight to goal"] == "{:.3f} [{:.3f}, {:.3f}]".format(
@@ -117,18 +133,28 @@ def test_site_in_a_browser(board, tmp_path):
         def value(text: str) -> float:
             return float(text.split()[0])
 
-        before = order(0)
+        before = order(1)
         mean = {lab: r["scenes"]["hotel"]["success_rate"]["mean"] for lab, r in by_label.items()}
-        header = table.find_elements(By.TAG_NAME, "th")[3]
+        assert before == sorted(before, key=lambda lab: -mean[lab])  # ranked: the best first
+        header = table.find_elements(By.TAG_NAME, "th")[4]
         header.click()  # ascending by the numbers (a stable sort: ties keep their order)
-        assert order(0) == sorted(before, key=mean.get) and header.get_attribute("aria-sort") == "ascending"
-        assert [value(t) for t in order(3)] == sorted(mean.values())
-        assert order(0) != before  # this board's default order: 1.0, 0.5, 0.0
+        assert order(1) == sorted(before, key=mean.get) and header.get_attribute("aria-sort") == "ascending"
+        assert [value(t) for t in order(4)] == sorted(mean.values())
+        assert order(1) != before  # this board's success: 1.0, 0.5, 0.0
         header.click()
-        assert order(0) == sorted(before, key=lambda lab: -mean[lab])
+        assert order(1) == sorted(before, key=lambda lab: -mean[lab])
         assert header.get_attribute("aria-sort") == "descending"
-        table.find_elements(By.TAG_NAME, "th")[0].click()  # a text column: by name
-        assert order(0) == sorted(before, key=str.lower)
+        table.find_elements(By.TAG_NAME, "th")[1].click()  # a text column: by name
+        assert order(1) == sorted(before, key=str.lower)
+        # the track's summary: ranked by its headline, success the first metric, visible without scrolling
+        summary = driver.find_element(By.ID, "v1.summary")
+        heads = [h.text.rstrip(" ↕▲▼") for h in summary.find_elements(By.TAG_NAME, "th")]
+        assert heads[:5] == ["#", "method", "trained on", "seeds", "success"]
+        cells = [r.find_elements(By.TAG_NAME, "td") for r in summary.find_elements(By.CSS_SELECTOR, "tbody tr")]
+        assert [c[0].text for c in cells] == ["1", "2", "3"]
+        assert [value(c[4].text) for c in cells] == sorted((value(c[4].text) for c in cells), reverse=True)
+        right = driver.execute_script("return arguments[0].getBoundingClientRect().right", cells[0][4])
+        assert right <= driver.execute_script("return window.innerWidth")
         driver.save_screenshot(str(tmp_path / "index.png"))
         # no http(s) URL in a src or href but the submissions' own links
         refs = driver.execute_script(
@@ -142,6 +168,9 @@ def test_site_in_a_browser(board, tmp_path):
         assert driver.find_element(By.TAG_NAME, "h1").text == "Toy MLP"
         img = driver.find_element(By.CSS_SELECTOR, ".media img")
         assert driver.execute_script("return arguments[0].complete && arguments[0].naturalWidth", img) > 100
+        replay = driver.find_element(By.CSS_SELECTOR, ".media .replay img")  # the episode plays in the page
+        assert replay.get_attribute("src").endswith(".gif")
+        assert driver.execute_script("return arguments[0].complete && arguments[0].naturalWidth", replay) > 100
         links = [a.get_attribute("href") for a in driver.find_elements(By.CSS_SELECTOR, ".media a[download]")]
         assert links and all(u.startswith("file://") and u.endswith(".rrd") for u in links)
         results_table = driver.find_element(By.ID, "toy.v1")

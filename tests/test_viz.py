@@ -176,6 +176,72 @@ def test_viz_png_episode_and_grid(tmp_path, capsys):
     assert "wrote" in capsys.readouterr().out
 
 
+def test_figures_equal_scales_and_a_legend_for_humans(tmp_path, monkeypatch):
+    """A grid shows every episode at one scale (same metres per panel) and time colour; the figures'
+    legends name the humans' paths; the PNG is cropped to its content."""
+    from crowdbench.viz import figures
+
+    evaluate(StraightToGoal(), [SCENE], 4, out_dir=tmp_path, save_episodes=True)
+    rows = [json.loads(line) for line in (tmp_path / "episodes.jsonl").read_text().splitlines()]
+    figs = []
+    real_save = figures._save
+    monkeypatch.setattr(figures, "_save", lambda fig, out, **kw: (figs.append(fig), real_save(fig, out, **kw))[1])
+    figures.grid_figure(rows, tmp_path / "grid.png")
+    panels = [ax for ax in figs[0].axes if ax.get_title().startswith(SCENE)]
+    assert len(panels) == 4
+    sizes = {(round(np.diff(ax.get_xlim())[0], 6), round(np.diff(ax.get_ylim())[0], 6)) for ax in panels}
+    assert len(sizes) == 1  # equal scales
+    assert any("human within sensing range" in t.get_text() for lg in figs[0].legends for t in lg.get_texts())
+    figures.episode_figure(rows[0], tmp_path / "ep.png")
+    texts = [t.get_text() for t in figs[1].axes[0].get_legend().get_texts()]
+    assert {"start", "goal", "human within sensing range", "human out of range"} <= set(texts)
+    img = non_trivial_png(tmp_path / "ep.png")
+    for blank in ((img.min(-1) > 0.99).all(1), (img.min(-1) > 0.99).all(0)):  # rows, columns
+        ink = np.nonzero(~blank)[0]
+        assert ink[0] < 12 and len(blank) - 1 - ink[-1] < 12  # blank margins under 0.1 in (120 dpi)
+
+
+def test_viz_video_one_frame_per_step(tmp_path, monkeypatch, capsys):
+    """`viz --video FILE.gif`: as many frames as the episode has steps, drawn (not blank); an MP4 without
+    ffmpeg is a one-line error naming it, written by nothing."""
+    from matplotlib import animation
+    from PIL import Image
+
+    evaluate(StraightToGoal(), ["hotel"], 3, out_dir=tmp_path, save_episodes=True)
+    rows = [json.loads(line) for line in (tmp_path / "episodes.jsonl").read_text().splitlines()]
+    row = rows[1]
+    assert main(["viz", str(tmp_path), "--episode", str(row["episode"]), "--video", str(tmp_path / "ep.gif")]) == 0
+    with Image.open(tmp_path / "ep.gif") as gif:
+        assert gif.n_frames == len(row["robot_xy"]) - 1 > 5  # one frame per step
+        assert gif.info["duration"] == 250  # real time: dt = 0.25 s per frame
+        first = np.asarray(gif.convert("RGB"))
+        gif.seek(gif.n_frames - 1)
+        last = np.asarray(gif.convert("RGB"))
+    assert first.std() > 10 and np.abs(first.astype(int) - last).sum() > 0  # the robot moved between them
+    assert main(["viz", str(tmp_path), "--video", str(tmp_path / "fast.gif"), "--fps", "10"]) == 0
+    with Image.open(tmp_path / "fast.gif") as gif:
+        assert gif.n_frames == len(rows[0]["robot_xy"]) - 1 and gif.info["duration"] == 100
+    capsys.readouterr()
+    monkeypatch.setattr(animation.writers, "is_available", lambda name: False)
+    assert main(["viz", str(tmp_path), "--video", str(tmp_path / "ep.mp4")]) == 2
+    err = capsys.readouterr().err
+    assert "needs ffmpeg" in err and err.count("\n") == 1 and not (tmp_path / "ep.mp4").exists()
+
+
+def test_viz_video_mp4_frame_count(tmp_path):
+    from matplotlib import animation
+
+    if not (animation.writers.is_available("ffmpeg") and shutil.which("ffprobe")):
+        pytest.skip("an MP4 needs ffmpeg (Debian package: ffmpeg)")
+    evaluate(StraightToGoal(), ["hotel"], 2, out_dir=tmp_path, save_episodes=True)
+    row = json.loads((tmp_path / "episodes.jsonl").read_text().splitlines()[0])
+    assert main(["viz", str(tmp_path), "--video", str(tmp_path / "ep.mp4")]) == 0
+    probe = subprocess.run(["ffprobe", "-v", "error", "-count_frames", "-select_streams", "v:0", "-show_entries",
+                            "stream=nb_read_frames", "-of", "csv=p=0", str(tmp_path / "ep.mp4")],
+                           capture_output=True, text=True, check=True)
+    assert int(probe.stdout.strip()) == len(row["robot_xy"]) - 1
+
+
 def fake_run(root, name, seed, frames, success, config_extra=None):
     """A run directory as `crowdbench run` leaves it: TorchRL CSVLogger scalars + a checkpoint config."""
     from torchrl.record.loggers.csv import CSVLogger
@@ -193,7 +259,7 @@ def fake_run(root, name, seed, frames, success, config_extra=None):
 
 
 def test_plot_overlays_runs_with_seed_band(tmp_path):
-    from crowdbench.viz.figures import band, group_runs, read_scalars
+    from crowdbench.viz.curves import band, group_runs, read_scalars
 
     a = fake_run(tmp_path, "s0", 0, [256, 512, 768, 1024], [0.0, 0.2, 0.4, 0.6])
     b = fake_run(tmp_path, "s1", 1, [256, 512, 768], [0.2, 0.2, 0.6])
@@ -208,6 +274,19 @@ def test_plot_overlays_runs_with_seed_band(tmp_path):
     assert np.allclose(mean, [0.1, 0.2, 0.5]) and np.allclose(lo, [0.0, 0.2, 0.4]) and np.allclose(hi, [0.2, 0.2, 0.6])
     assert main(["plot", str(a), str(b), str(c), "--out", str(tmp_path / "curves.png")]) == 0
     non_trivial_png(tmp_path / "curves.png")
+    from crowdbench.viz import curves
+
+    figs = []
+    real_save = curves._save
+    curves._save = lambda fig, out, **kw: (figs.append(fig), real_save(fig, out, **kw))[1]
+    try:
+        curves.plot_runs([a, b, c], tmp_path / "grid.png")
+    finally:
+        curves._save = real_save
+    drawn = [ax for ax in figs[0].axes if ax.get_title()]
+    assert len(drawn) == 3 and len({round(ax.get_position().x0, 3) for ax in drawn}) == 2  # two columns, not a strip
+    colours = [ln.get_color() for ln in drawn[0].get_lines()]
+    assert len(set(colours)) == 2  # one colour per group of runs
     assert main(["plot", str(a)]) == 0 and (a / "curves.png").exists()
 
 
@@ -218,6 +297,9 @@ def test_plot_overlays_runs_with_seed_band(tmp_path):
     (["viz", "{tmp}/ev", "--scene", "eth"], "scene 'eth' not in"),
     (["viz", "{tmp}/ev", "--episode", "x"], "invalid int value: 'x'"),
     (["viz", "{tmp}/ev", "--grid", "0"], "--grid must be >= 1"),
+    (["viz", "{tmp}/ev", "--video", "{tmp}/ep.avi"], "the file must end in .gif or .mp4"),
+    (["viz", "{tmp}/ev", "--video", "{tmp}/ep.gif", "--grid", "2"], "--video FILE animates one episode"),
+    (["viz", "{tmp}/ev", "--video", "{tmp}/ep.gif", "--fps", "0"], "--fps must be in (0, 100]"),
     (["plot", "{tmp}"], "no training log in"),
     (["plot", "{tmp}/nope"], "run directory not found:"),
     (["eval", "policy=straight", "eval.scenes=[hotel]", "eval.episodes=2", "viz.record=true", "viz.episodes=[7]"],
@@ -239,4 +321,4 @@ def test_bad_input_one_line_error(args, message, tmp_path, capsys):
     assert main(args) == 2
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1, err
-    assert not (tmp_path / "out").exists() and not list(tmp_path.rglob("*.png"))
+    assert not (tmp_path / "out").exists() and not list(tmp_path.rglob("*.png")) and not list(tmp_path.rglob("*.gif"))

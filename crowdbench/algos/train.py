@@ -17,11 +17,11 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torchrl.collectors import Collector
 from torchrl.envs import InitTracker, RewardSum
-from torchrl.record.loggers.csv import CSVLogger
 from tqdm import tqdm
 
 from crowdbench.algos.base import Algorithm
 from crowdbench.algos.checkpoint import FORMAT, CheckpointError, load_checkpoint
+from crowdbench.algos.loggers import close_logger, make_logger
 from crowdbench.algos.multiagent import finished_episodes
 from crowdbench.algos.registry import component
 from crowdbench.algos.resume import check_resumable, truncate_log
@@ -36,20 +36,6 @@ EPISODE_RETURN = (GROUP, "episode_reward")
 # continue a prioritized run with uniform replay; the saved transitions move into the new buffer (docs/training.md)
 RESUME_FREE = {"algo": ("replay", "per_alpha", "per_beta", "per_weights")}
 MODEL_KEYS = ("algo", "encoder", "env")
-
-
-def make_logger(kind: str, out_dir: Path):
-    """TorchRL's CSV logger (``logs/scalars/<name>.csv``), or its TensorBoard logger if installed."""
-    if kind == "csv":
-        return CSVLogger(exp_name="logs", log_dir=str(out_dir))
-    if kind == "tensorboard":
-        from torchrl.record.loggers.tensorboard import TensorboardLogger
-
-        try:
-            return TensorboardLogger(exp_name="tensorboard", log_dir=str(out_dir))
-        except ImportError as e:
-            raise ValueError(f"train.logger=tensorboard needs the tensorboard package ({e})") from None
-    raise ValueError(f"unknown train.logger {kind!r}; valid: csv, tensorboard")
 
 
 class DurationEstimate:
@@ -205,22 +191,33 @@ def _train(cfg: DictConfig, out_dir: Path, resume: bool, progress: bool, probe) 
     env = make_env(cfg, progress_reward=t.progress_reward, human_dropout=t.human_dropout,
                    extra=(InitTracker(), RewardSum(in_keys=[(GROUP, "reward")], out_keys=[EPISODE_RETURN])))
     algo = Algo(cfg, env.n_agents)
-    actor = algo.actor
-    frames = 0
-    window: list[tuple[int, float]] = []  # (outcome, return) of recently finished episodes
-    restored = False
-    last_probe = 0
+    # window: (outcome, return) of recently finished episodes
+    start = {"frames": 0, "window": [], "restored": False, "last_probe": 0}
     if state is not None:
         algo.load_state_dict(state)
         env.sampler.load_state_dict(state["sampler"])
         torch.set_rng_state(state["torch_rng"])
-        frames, algo.updates = int(state["frames"]), int(state["updates"])
-        restored = algo.restore_extra(state, ckpt_path)
-        window = list(zip(*state["window"], strict=True)) if "window" in state else []
-        last_probe = int(state.get("last_probe", frames))
+        frames = start["frames"] = int(state["frames"])
+        algo.updates = int(state["updates"])
+        start["restored"] = algo.restore_extra(state, ckpt_path)
+        start["window"] = list(zip(*state["window"], strict=True)) if "window" in state else []
+        start["last_probe"] = int(state.get("last_probe", frames))
         truncate_log(out_dir / "logs", frames)
 
-    logger = make_logger(t.logger, out_dir)
+    logger = make_logger(t.logger, out_dir, cfg, print if progress else lambda _: None)
+    failed = True
+    try:
+        stats = _loop(cfg, out_dir, env, algo, logger, state, start, progress, probe)
+        failed = False
+        return stats
+    finally:
+        close_logger(logger, failed)
+
+
+def _loop(cfg, out_dir, env, algo, logger, state, start: dict, progress, probe) -> dict:
+    """The warm start (a fresh run's, if any) and the collect-learn-log-checkpoint loop from ``start``."""
+    t, actor, ckpt_path = cfg.train, algo.actor, out_dir / "checkpoint.pt"
+    frames, window, last_probe, restored = start["frames"], start["window"], start["last_probe"], start["restored"]
     if state is None and t.get("pretrain"):
         warm_start(cfg, env, algo, logger, print if progress else None)
     remaining = t.total_frames - frames

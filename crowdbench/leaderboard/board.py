@@ -264,11 +264,14 @@ def _run(root: Path, only: list[str] | None = None, check: bool = False, force: 
         f"{len(rejected)} rejected, {time.time() - t_all:.1f} s")
     if check:
         return _check(root, tracks, table, board, targets, v1, scenes, episodes, log) or (1 if failed else 0)
+    from crowdbench.leaderboard.plots import colour_map, track_plot, v1_plot
+
     wrote = []
+    colours = colour_map([r for rs in shown.values() for r in rs])  # one colour per method in every plot
     if "v1" in tracks:
         write_atomic(root / "README.md", table)
         if v1:
-            render.plot(v1, scenes, root / "leaderboard.png")
+            v1_plot(v1, scenes, root / "leaderboard.png", colours)
         wrote += [str(root / "README.md"), str(root / "leaderboard.png")]
         for path, text in targets:
             new = render.regenerate(text, v1, scenes, episodes)
@@ -278,6 +281,10 @@ def _run(root: Path, only: list[str] | None = None, check: bool = False, force: 
                          f"the generated blocks of {path}")
     write_atomic(root / TRACKS_FILE, board)
     wrote.append(str(root / TRACKS_FILE))
+    for t, rs in shown.items():
+        if rs:
+            track_plot(TRACKS[t], rs, root / "plots" / f"{t}.png", colours)
+    wrote.append(f"{root / 'plots'}/<track>.png")
     if site is not None:  # from the results just written: the tables' numbers
         from crowdbench.leaderboard.site import write_site
 

@@ -5,16 +5,20 @@ the results (no evaluation). Submission text enters the markdown escaped (:func:
 
 from __future__ import annotations
 
-import math
-from pathlib import Path
-
-import torch
-
 from crowdbench.envs.protocol import EVAL_SCENES, PAPER_SCENES, PROTOCOL_VERSION
-from crowdbench.eval import rate_ci
 from crowdbench.leaderboard.entries import model_of
 from crowdbench.leaderboard.metrics import sections
 from crowdbench.leaderboard.schema import KINDS, link_problem
+from crowdbench.leaderboard.stats import (  # noqa: F401 - the cells' functions, as render.* for the renderers
+    average_cell,
+    average_stat,
+    fmt,
+    group_stat,
+    interval,
+    ranked,
+    scene_cell,
+    seeds_cell,
+)
 from crowdbench.leaderboard.text import diff_rows, md  # noqa: F401 - diff_rows: render.diff_rows for --check
 
 
@@ -27,53 +31,32 @@ BLOCK_START, BLOCK_END = markers("results")  # the top-level README's block
 DOCS_START, DOCS_END = markers("docs-results")  # docs/results.md
 
 
-def fmt(v, digits: int) -> str:
-    return "—" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{digits}f}"
-
-
-def scene_cell(r: dict, scene: str, metric: str, digits: int) -> tuple[float | None, str]:
-    v = r["scenes"].get(scene, {}).get(metric)
-    if not v or v["mean"] is None:
-        return None, "—"
-    return v["mean"], f"{v['mean']:.{digits}f} [{v['ci95'][0]:.{digits}f}, {v['ci95'][1]:.{digits}f}]"
-
-
-def average_cell(r: dict, metric: str, digits: int) -> tuple[float | None, str]:
-    """Paper-scene average: pooled Wilson interval for rates, combined normal interval for means."""
-    vals = [r["scenes"].get(s, {}).get(metric) for s in PAPER_SCENES]
-    if any(v is None or v["mean"] is None for v in vals):
-        return None, "—"
-    mean = sum(v["mean"] for v in vals) / len(vals)
-    if metric.endswith("_rate"):
-        n = sum(v["n"] for v in vals)
-        k = round(sum(v["mean"] * v["n"] for v in vals))
-        ci = rate_ci(k, n)["ci95"] if len({v["n"] for v in vals}) == 1 else [None, None]
-    else:
-        half = math.sqrt(sum(((v["ci95"][1] - v["ci95"][0]) / 2) ** 2 for v in vals)) / len(vals)
-        ci = [mean - half, mean + half]
-    return mean, fmt(mean, digits) if ci[0] is None else f"{mean:.{digits}f} [{ci[0]:.{digits}f}, {ci[1]:.{digits}f}]"
-
-
-def seed_cell(values: list[float | None], digits: int) -> tuple[float | None, str]:
-    """Mean ± standard deviation over seeds (and the number of seeds)."""
-    if not values or any(v is None for v in values):
-        return None, "—"
-    m = sum(values) / len(values)
-    sd = math.sqrt(sum((v - m) ** 2 for v in values) / (len(values) - 1)) if len(values) > 1 else 0.0
-    return m, f"{m:.{digits}f} ± {sd:.{digits}f}"
-
-
 def label(group: list[dict], escape: bool = True) -> str:
-    """The entry's row label, markdown-escaped (``escape``; the plot's legend takes it raw)."""
+    """The entry's row label, markdown-escaped (``escape``; the plot's legend takes it raw): a privileged
+    entry says so, and so does an unofficial one among official ones (:func:`group_results`)."""
     r = group[0]
     name = r["meta"]["entry"]
     if r.get("privileged") and "privileged" not in name.lower():
         name += " (PRIVILEGED)"
+    if any(x.get(UNOFFICIAL_ROW) for x in group):
+        name += " (UNOFFICIAL)"
     return md(name) if escape else name
 
 
+UNOFFICIAL_ROW = "_unofficial_row"  # set on (a copy of) a result that :func:`label` marks as unofficial
+
+
+def official(r: dict) -> bool:
+    """Whether the harness evaluated ``r`` on the official protocol (every scene, every episode)."""
+    return r.get("harness", {}).get("official") is not False
+
+
 def group_results(results: list[dict]) -> list[list[dict]]:
-    """Results grouped by entry (seeds together), ordered baseline < learned < oracle, then by name."""
+    """Results grouped by entry (seeds together), ordered baseline < learned < oracle, then by name. In a
+    table that mixes official and unofficial results (e.g. a cached subset shown beside a full evaluation),
+    the unofficial ones are marked for :func:`label` (the header of an all-unofficial table says so)."""
+    if len({official(r) for r in results}) > 1:
+        results = [r if official(r) else {**r, UNOFFICIAL_ROW: True} for r in results]
     groups: dict[tuple[str, str], list[dict]] = {}
     for r in sorted(results, key=lambda r: r["meta"]["submission"]):
         groups.setdefault((r["meta"]["kind"], r["meta"]["entry"]), []).append(r)  # a kind never joins another
@@ -90,29 +73,52 @@ METRICS = [
 ]
 
 
+AVG = "AVG (paper scenes)"
+
+
 def table_columns(scenes: list[str]) -> list[str]:
-    """A metric table's value columns: the paper scenes, their average (all four present), the others."""
+    """A metric table's value columns: the paper scenes' average first (all four present: the headline),
+    the paper scenes, the others."""
     paper = [s for s in PAPER_SCENES if s in scenes]
-    return [*paper, *(["AVG (paper scenes)"] * (len(paper) == len(PAPER_SCENES))), *(s for s in scenes if s not in paper)]
+    return [*([AVG] * (len(paper) == len(PAPER_SCENES))), *paper, *(s for s in scenes if s not in paper)]
 
 
 def table_cell(g: list[dict], col: str, metric: str, digits: int, intervals: bool = True) -> tuple[float | None, str]:
-    """Entry ``g``'s cell in column ``col`` (a scene or ``AVG...``): one run [95% interval], seeds mean ± sd."""
-    vals = [average_cell(r, metric, digits) if col.startswith("AVG") else scene_cell(r, col, metric, digits) for r in g]
+    """Entry ``g``'s cell in column ``col`` (a scene or ``AVG...``): mean [95% interval] (``intervals``) of
+    one run, or over its seeds (:func:`seeds_cell`)."""
     if len(g) > 1:
-        return seed_cell([v[0] for v in vals], digits)
-    return vals[0][0], vals[0][1] if intervals else fmt(vals[0][0], digits)
+        parts = list(PAPER_SCENES) if col.startswith("AVG") else [col]
+        return seeds_cell([[r["scenes"].get(s, {}).get(metric) for s in parts] for r in g], metric, digits, intervals)
+    v = average_cell(g[0], metric, digits) if col.startswith("AVG") else scene_cell(g[0], col, metric, digits)
+    return v[0], v[1] if intervals else fmt(v[0], digits)
+
+
+def success_score(g: list[dict], scenes: list[str]) -> float | None:
+    """The headline of protocol v1's tables: success averaged over the paper scenes (over the scenes
+    evaluated, on a subset without all four), mean over seeds."""
+    cols = [AVG] if all(s in scenes for s in PAPER_SCENES) else list(scenes)
+    vals = [table_cell(g, c, "success_rate", 3, intervals=False)[0] for c in cols]
+    return None if not vals or None in vals else sum(vals) / len(vals)
 
 
 def metric_table(groups: list[list[dict]], scenes: list[str], metric: str, digits: int,
                  intervals: bool = True) -> list[str]:
-    """One row per entry; a single run shows its 95% interval (``intervals``), seeds mean ± sd."""
-    head = ["method", "seeds", *table_columns(scenes)]
+    """One row per entry, ranked by success (:func:`success_score`: every metric's table in the same
+    order); mean [95% interval] (``intervals``) of a run or of several seeds."""
+    head = ["#", "method", "seeds", *table_columns(scenes)]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for g in groups:
-        cells = [label(g), str(len(g)), *(table_cell(g, col, metric, digits, intervals)[1] for col in head[2:])]
+    for rank, g in ranked(groups, lambda g: success_score(g, scenes)):
+        cells = [str(rank or "—"), label(g), str(len(g)),
+                 *(table_cell(g, col, metric, digits, intervals)[1] for col in head[3:])]
         lines.append("| " + " | ".join(cells) + " |")
     return lines
+
+
+RANKING = ("Every table ranks the entries (#) by success averaged over the four paper scenes (its first column); "
+           "each cell is mean [95% interval]: a single run's Wilson interval for rates and normal approximation "
+           "for means (the paper-scene average pools the four scenes); an entry with several training seeds "
+           "(per-seed rows below): the mean over seeds and a two-level bootstrap interval (seeds, then each "
+           "seed's episodes). Intervals are clipped to the metric's range.")
 
 
 def render_readme(results: list[dict], rejected: list[str], scenes: list[str], episodes: int | None,
@@ -125,14 +131,12 @@ def render_readme(results: list[dict], rejected: list[str], scenes: list[str], e
     if official:
         L.append("Every number is computed by the harness (`crowdbench leaderboard`) on the fixed protocol: 250 episodes "
                  "per scene, 4 paper scenes (students003, zara2, hotel, eth) and 3 extra scenes (zara1, zara3, "
-                 "uni_examples). Single runs: mean [95% interval] (Wilson for rates, normal approximation for means; "
-                 "the paper-scene average pools the four scenes). Entries with several training seeds: mean ± "
-                 "standard deviation across seeds (per-seed rows below).")
+                 "uni_examples).")
     else:
         L.append(f"**UNOFFICIAL subset**: {episodes or 250} episodes per scene, scenes {', '.join(scenes)}. "
                  "Not comparable with the official table.")
-    L += ["", ("The **oracle** is PRIVILEGED: it knows every replayed human's future and plans with the simulator's "
-          "own collision test. It is an upper bound on what is achievable, not a navigation policy. "
+    L += ["", RANKING, "", ("The **oracle** is PRIVILEGED: it knows every replayed human's future and plans with the "
+          "simulator's own collision test. It is an upper bound on what is achievable, not a navigation policy. "
           "How to submit: [docs/submitting.md](../docs/submitting.md)."), "", "![leaderboard](leaderboard.png)", ""]
     for metric, title, digits in METRICS + sections(results):  # the social metrics only if some result has them
         L += [f"## {title}", "", *metric_table(groups, scenes, metric, digits), ""]
@@ -178,50 +182,9 @@ def render_readme(results: list[dict], rejected: list[str], scenes: list[str], e
     return "\n".join(L)
 
 
-def plot(results: list[dict], scenes: list[str], out: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    groups = group_results(results)
-    fig, axes = plt.subplots(1, 2, figsize=(13, 4.2))
-    width = 0.8 / max(len(groups), 1)
-    xs = range(len(scenes))
-    for i, g in enumerate(groups):
-        for ax, metric in zip(axes, ("success_rate", "dangers_per_episode"), strict=True):
-            means, lo, hi = [], [], []
-            for s in scenes:
-                vals = [r["scenes"][s][metric] for r in g if s in r["scenes"]]
-                m = sum(v["mean"] for v in vals) / len(vals) if vals else float("nan")
-                if len(g) == 1 and vals:
-                    a, b = vals[0]["ci95"]
-                else:
-                    sd = torch.tensor([v["mean"] for v in vals], dtype=torch.float64).std().item() if vals else 0
-                    a, b = m - sd, m + sd
-                means.append(m)
-                lo.append(max(m - a, 0))
-                hi.append(max(b - m, 0))
-            ax.bar([x + (i - (len(groups) - 1) / 2) * width for x in xs], means, width, yerr=[lo, hi], capsize=2,
-                   label=label(g, escape=False).replace("$", r"\$"), color=plt.get_cmap("tab20")(i % 20))
-    for ax, title in zip(axes, ("success rate (95% CI; seeds: ± sd)", "dangers per episode"), strict=True):
-        ax.set_xticks(list(xs), scenes, rotation=30, ha="right")
-        ax.set_title(title)
-        ax.grid(axis="y", alpha=0.3)
-    axes[0].set_ylim(0, 1.05)
-    handles, labels = axes[0].get_legend_handles_labels()
-    ncol = min(len(groups), 4)
-    fig.legend(handles, labels, loc="lower center", ncol=ncol, fontsize=8, frameon=False)
-    fig.suptitle(f"crowdbench leaderboard, protocol {PROTOCOL_VERSION} (oracle = privileged upper bound)")
-    fig.tight_layout(rect=(0, 0.04 + 0.035 * math.ceil(len(groups) / ncol), 1, 1))
-    fig.savefig(out, dpi=110, metadata={"Software": None})
-    plt.close(fig)
-
-
 # ---------------------------------------------------------------------------------- README block
 def _group_average(g: list[dict], metric: str, digits: int) -> tuple[float | None, str]:
-    vals = [average_cell(r, metric, digits)[0] for r in g]
-    return seed_cell(vals, digits) if len(g) > 1 else (vals[0], fmt(vals[0], digits))
+    return table_cell(g, AVG, metric, digits)
 
 
 def summary_sentence(groups: list[list[dict]]) -> str:
@@ -247,13 +210,13 @@ def summary_sentence(groups: list[list[dict]]) -> str:
         parts.append(f"the privileged oracle {stats(oracle[0])}")
     if not parts:
         return ""
-    return ("Average success over the four paper scenes (mean ± sd over seeds for entries with several): "
-            + "; ".join(parts) + ".")
+    return ("Average success over the four paper scenes, mean [95% interval] (over seeds for entries with "
+            "several): " + "; ".join(parts) + ".")
 
 
 def render_block(results: list[dict], scenes: list[str], episodes: int | None) -> str:
     """The top-level README's results block (between BLOCK_START and BLOCK_END): the success table,
-    means only (single runs) or mean ± sd over seeds, and the summary sentence."""
+    ranked, means only (of a run or over seeds), and the summary sentence."""
     groups = group_results(results)
     L = [*_subset_note(scenes, episodes), *metric_table(groups, scenes, "success_rate", 3, intervals=False)]
     sentence = summary_sentence(groups) if all(s in scenes for s in PAPER_SCENES) else ""
@@ -303,11 +266,11 @@ BASELINE_METRICS = [
 
 
 def summary_table(groups: list[list[dict]]) -> list[str]:
-    """Every entry: seeds, average success over the paper scenes and dangers per episode (single runs:
-    the mean; several seeds: mean ± sd over seeds)."""
-    lines = ["| entry | seeds | average success | dangers / episode |", "|---|---|---|---|"]
-    for g in groups:
-        lines.append(f"| {label(g)} | {len(g)} | {_group_average(g, 'success_rate', 3)[1]} | "
+    """Every entry, ranked by average success over the paper scenes: seeds, that success and dangers per
+    episode, mean [95% interval] (of a run or over seeds)."""
+    lines = ["| # | entry | seeds | average success | dangers / episode |", "|---|---|---|---|---|"]
+    for rank, g in ranked(groups, lambda g: _group_average(g, "success_rate", 3)[0]):
+        lines.append(f"| {rank or '—'} | {label(g)} | {len(g)} | {_group_average(g, 'success_rate', 3)[1]} | "
                      f"{_group_average(g, 'dangers_per_episode', 3)[1]} |")
     return lines
 
@@ -343,8 +306,8 @@ def render_docs_block(results: list[dict], scenes: list[str], episodes: int | No
 
 
 def paper_scene_block(metric: str, digits: int):
-    """A block of docs/reproduction.md: every entry on the paper scenes and their average, means only
-    (single runs) or mean ± sd over seeds (the rows set against the paper's numbers)."""
+    """A block of docs/reproduction.md: every entry on the paper scenes and their average, ranked by
+    success, means only (of a run or over seeds: the rows set against the paper's numbers)."""
     def render(results: list[dict], scenes: list[str], episodes: int | None) -> str:
         paper = [s for s in scenes if s in PAPER_SCENES]
         L = [*_subset_note(scenes, episodes), *metric_table(group_results(results), paper, metric, digits,

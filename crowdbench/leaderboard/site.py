@@ -7,7 +7,7 @@ from the network: open ``DIR/index.html`` from disk.
 Pure rendering of the results the run holds (the cached or fresh results it also writes the tables
 from): every cell is :func:`~.render.table_cell` / :func:`~.track_tables.group_cell`, the functions of
 ``leaderboard/README.md`` and ``TRACKS.md``, so the page shows their numbers, seeds of one entry grouped
-as there (:func:`~.render.group_results`: mean ± sd, n). Submission text is HTML-escaped
+as there (:func:`~.render.group_results`: mean [95% bootstrap interval], n), ranked as there. Submission text is HTML-escaped
 (:func:`html.escape`) and a ``link`` becomes a link only if it is an http(s) URL (:func:`~.schema.link_problem`).
 """
 
@@ -24,6 +24,7 @@ import yaml
 
 from crowdbench.envs.protocol import EVAL_SCENES, PROTOCOL_VERSION
 from crowdbench.leaderboard.entries import model_of
+from crowdbench.leaderboard.metrics import columns
 from crowdbench.leaderboard.render import (
     BASELINE_METRICS,
     METRICS,
@@ -35,14 +36,15 @@ from crowdbench.leaderboard.render import (
 from crowdbench.leaderboard.sandbox import DEFAULT_LIMITS, Limits
 from crowdbench.leaderboard.schema import SCHEMA, link_problem
 from crowdbench.leaderboard.site_media import SCENE, entry_media
-from crowdbench.leaderboard.track_tables import CROWD, group_cell, trained_on
+from crowdbench.leaderboard.stats import ranked
+from crowdbench.leaderboard.track_tables import CROWD, SUMMARY, group_cell, trained_on
 from crowdbench.leaderboard.tracks import TRACK_ORDER, TRACKS, units
 
 ASSETS = Path(__file__).with_name("site_assets")
 # metric -> (title, digits): the tables' own titles and digits; other metrics of results.json: 3 digits
 TITLES = {m: (t, d) for m, t, d in [*BASELINE_METRICS, *CROWD]}
 TITLES.update({m: (TITLES.get(m, (t, d))[0], d) for m, t, d in METRICS})
-OPEN = ("success_rate", "collision_rate", "timeout_rate", "nav_time_s", "dangers_per_episode")  # unfolded
+OPEN = ("success_rate",)  # unfolded per-scene tables (every track's summary table comes first)
 
 
 def e(x) -> str:
@@ -115,27 +117,44 @@ class Site:
         return sorted({r["meta"]["submission"] for r in self.entries[entry]})
 
     # ------------------------------------------------------------------ index
+    def entry_cells(self, rank: int | None, g: list[dict]) -> list[str]:
+        lab = label(g, escape=False)
+        return [td(rank, str(rank or "—")), f'<td data-sort="{e(lab)}"><a href="{self.href(key(g[0]))}">{e(lab)}</a></td>',
+                td(None, trained_on(g[0]) or "—"), td(len(g), str(len(g)))]
+
+    def plot(self, name: str) -> list[str]:
+        """The track's ranked plot (``leaderboard/plots/<track>.png``, copied by :func:`write_site`), if any."""
+        if not (self.root / "plots" / f"{name}.png").is_file():
+            return []
+        return [f'<p><img class="plot" src="plots/{quote(name)}.png" alt="{e(name)}: success, ranked"></p>']
+
+    def summary_table(self, name: str, order: list) -> list[str]:
+        """The track's ranking: its headline figures, success first (the rows of TRACKS.md's table)."""
+        track, home = TRACKS[name], [r for g in (g for _, g in order) for r in g]
+        cols = SUMMARY + (CROWD if track.protocol == "v2" else []) + columns(home)
+        rows = [self.entry_cells(rank, g) + [td(*group_cell(g, track, m, d)) for m, _, d in cols] for rank, g in order]
+        head = [("#", True), ("method", False), ("trained on", False), ("seeds", True), *((c, True) for _, c, _ in cols)]
+        return ['<div class="scroll">', *table(head, rows, cls="sortable ranked summary", tid=f"{name}.summary"), "</div>"]
+
     def track_section(self, name: str) -> list[str]:
         track, results = TRACKS[name], self.by_track[name]
-        groups = group_results([r for r in results if trained_on(r) in (None, name)])
+        order = ranked(group_results([r for r in results if trained_on(r) in (None, name)]),
+                       lambda g: group_cell(g, track, "success_rate", 3)[0])
         cols = table_columns(units(track, self.scenes))
-        where = "per scene and the average over the four paper scenes" if track.replay else \
+        where = "the average over the four paper scenes" if track.replay else \
             f"CrowdNav's test cases of {track.setting}"
         L = [f'<section class="track" id="track-{e(name)}">', f"<h2><code>{e(name)}</code>: {e(track.title)}</h2>",
-             (f"<p>Baselines, the oracle where it applies and the entries trained on this track; {e(where)}. "
-             "A single run shows its mean [95% interval]; several seeds of one entry mean ± sd (n in the "
-             "<em>seeds</em> column). Click a column header to sort.</p>")]
+             (f"<p>Ranked (#) by success on {e(where)}: baselines, the oracle where it applies and the entries "
+              "trained on this track. Each cell: mean [95% interval] of a run, or over several seeds of one entry "
+              "(two-level bootstrap; n in the <em>seeds</em> column). Click a column header to sort.</p>"),
+             *self.summary_table(name, order), *self.plot(name), "<p>Per scene, every metric (same ranking):</p>"]
         for metric in metrics_of(results):
             title, digits = metric_info(metric)
-            rows = []
-            for g in groups:
-                lab = label(g, escape=False)
-                cells = [f'<td data-sort="{e(lab)}"><a href="{self.href(key(g[0]))}">{e(lab)}</a></td>',
-                         td(None, trained_on(g[0]) or "—"), td(len(g), str(len(g)))]
-                rows.append(cells + [td(*table_cell(g, c, metric, digits)) for c in cols])
-            head = [("method", False), ("trained on", False), ("seeds", True), *((c, True) for c in cols)]
+            rows = [self.entry_cells(rank, g) + [td(*table_cell(g, c, metric, digits)) for c in cols]
+                    for rank, g in order]
+            head = [("#", True), ("method", False), ("trained on", False), ("seeds", True), *((c, True) for c in cols)]
             L += [f'<details{" open" if metric in OPEN else ""}>', f"<summary>{e(title)}</summary>",
-                  *table(head, rows, tid=f"{name}.{metric}"), "</details>"]
+                  *table(head, rows, cls="sortable ranked", tid=f"{name}.{metric}"), "</details>"]
         return [*L, "</section>"]
 
     def transfer_section(self) -> list[str]:
@@ -160,8 +179,8 @@ class Site:
             rows.append(cells)
         head = [("method", False), ("trained on", False), ("seeds", True), *((t, True) for t in tracks)]
         return ['<section id="transfer">', "<h2>Transfer: success of every learned entry on every track</h2>",
-                ("<p>Replay tracks: average over the four paper scenes; CrowdNav tracks: its test cases. Mean ± sd "
-                "over seeds; highlighted: the track the entry was trained on.</p>"),
+                ("<p>Replay tracks: average over the four paper scenes; CrowdNav tracks: its test cases. Mean [95% "
+                "interval] over seeds; highlighted: the track the entry was trained on.</p>"),
                 *table(head, rows, tid="transfer"), "</section>"]
 
     def submissions_section(self) -> list[str]:
@@ -193,7 +212,7 @@ class Site:
                 (f'<nav>Tracks: {nav} · <a href="#transfer">transfer</a> · <a href="#submissions">submissions'
                 "</a></nav>"), "</header>", "<main>"]
         if plot:
-            body.append('<p><img class="plot" src="leaderboard.png" alt="success rate and dangers per scene"></p>')
+            body.append('<p><img class="plot" src="leaderboard.png" alt="success and dangers per episode, ranked"></p>')
         for name in self.by_track:
             body += self.track_section(name)
         body += self.transfer_section() + self.submissions_section()
@@ -243,8 +262,13 @@ class Site:
         base = f"../media/{quote(name)}/"
         links = [f'<li><a href="{base}{quote(x["recording"])}" download>{e(x["recording"])}</a> '
                  f'(episode {e(x["episode"])}: {e(x["outcome"])})</li>' for x in manifest["episodes"]]
+        replays = [f'<figure class="replay"><img src="{base}{quote(x["replay"])}" alt="replay of episode '
+                   f'{e(x["episode"])}"><figcaption>episode {e(x["episode"])}: {e(x["outcome"])}, {e(x["steps"])} '
+                   "steps</figcaption></figure>" for x in manifest["episodes"] if x.get("replay")]
         return ['<section class="media">', f"<h2>Trajectories: {e(name)}, {e(manifest['stamp']['scene'])}</h2>",
                 f'<img src="{base}{quote(manifest["figure"])}" alt="trajectories of {e(name)}">',
+                *(["<h3>Replays (one frame per step, real time)</h3>", '<div class="replays">', *replays, "</div>"]
+                  if replays else []),
                 "<p>Rerun recordings (open with <code>rerun FILE.rrd</code>):</p>", "<ul>", *links, "</ul>",
                 "</section>"]
 
@@ -310,6 +334,9 @@ def write_site(out: Path, root: Path, by_track: dict[str, list[dict]], scenes: l
     plot = (root / "leaderboard.png").is_file()
     if plot:
         shutil.copyfile(root / "leaderboard.png", out / "leaderboard.png")
+    shutil.rmtree(out / "plots", ignore_errors=True)
+    if (root / "plots").is_dir():  # the tracks' ranked plots
+        shutil.copytree(root / "plots", out / "plots")
     v1 = {r["meta"]["submission"]: r["harness"].get("fingerprint") for r in site.by_track.get("v1", [])}
     media = {}
     for entry in sorted(site.entries, key=order):
@@ -324,7 +351,7 @@ def write_site(out: Path, root: Path, by_track: dict[str, list[dict]], scenes: l
     for entry in site.entries:
         (out / "entries" / f"{site.slugs[entry]}.html").write_text(site.entry_page(entry, media))
     index = out / "index.html"
-    index.write_text(site.index(list(missing), list(rejected), plot))
+    index.write_text(site.index(list(missing), list(rejected), plot and not (out / "plots").is_dir()))
     (out / "site.json").write_text(json.dumps({"protocol": PROTOCOL_VERSION, "scenes": scenes, "episodes": episodes,
                                                "tracks": list(site.by_track), "entries": len(site.entries)}) + "\n")
     return index

@@ -1,8 +1,9 @@
 """The web site's figures and recordings (``crowdbench leaderboard --site DIR --site-figures N``): per
 entry, ``N`` evenly strided protocol v1 episodes of one scene, evaluated again with the harness's own
 policy construction (a learned entry behind its worker process, :class:`~.worker.WorkerPolicy`, as in
-the evaluation), drawn as one small trajectory figure (crowdbench/viz/figures.py) and recorded as one
-rerun ``.rrd`` per episode (crowdbench/viz/record.py).
+the evaluation), drawn as one small trajectory figure (crowdbench/viz/figures.py), animated as one GIF
+per episode that the entry's page plays (crowdbench/viz/video.py, one frame per step) and recorded as
+one rerun ``.rrd`` per episode (crowdbench/viz/record.py).
 
 Cached in ``DIR/media/<submission>/media.json`` by the fingerprint of the submission's v1 result, the
 scene and ``N``: re-running ``--site`` regenerates only the media of changed results. These episodes
@@ -20,7 +21,7 @@ import torch
 
 from crowdbench.leaderboard.sandbox import DEFAULT_LIMITS, Limits
 
-MEDIA_VERSION = 1
+MEDIA_VERSION = 2  # 2: an animated GIF replay per episode
 SCENE = "hotel"  # a paper scene with short episodes
 MANIFEST = "media.json"
 
@@ -56,7 +57,7 @@ def _figure(rows: list[dict], out: Path, title: str, time_base: str) -> None:
 def make_media(media: Path, sub_dir: Path, fp: str, n: int, scene: str = SCENE,
                limits: Limits = DEFAULT_LIMITS) -> dict:
     """Evaluate ``n`` episodes of ``scene`` for the submission at ``sub_dir`` into ``media`` (emptied
-    first): ``trajectories.png``, ``<scene>_epNNN.rrd`` per episode and the manifest, returned.
+    first): ``trajectories.png``, ``<scene>_epNNN.gif`` and ``.rrd`` per episode and the manifest, returned.
     Raises :class:`~.schema.SubmissionError` (or the evaluation's exception) on failure."""
     from crowdbench.envs.protocol import load_episodes
     from crowdbench.eval import evaluate, select_episodes
@@ -65,6 +66,7 @@ def make_media(media: Path, sub_dir: Path, fp: str, n: int, scene: str = SCENE,
     from crowdbench.leaderboard.tracks import TRACKS
     from crowdbench.viz.figures import load_rows
     from crowdbench.viz.record import SceneRecorder
+    from crowdbench.viz.video import episode_video
 
     shutil.rmtree(media, ignore_errors=True)
     media.mkdir(parents=True)
@@ -80,13 +82,16 @@ def make_media(media: Path, sub_dir: Path, fp: str, n: int, scene: str = SCENE,
                      recorder_factory=lambda s: SceneRecorder(s, chosen, media, None, policy_name=sub.name))
             rows, _, time_base = load_rows(Path(tmp))
             _figure(rows, media / "trajectories.png", f"{sub.name}: {scene}, protocol v1", time_base)
+            for r in rows:  # plays in the page: no viewer, nothing fetched
+                episode_video(r, media / f"{scene}_ep{r['episode']:03d}.gif", time_base, size=3.6, dpi=60)
     finally:
         if hasattr(policy, "close"):
             policy.close()
         torch.set_num_threads(threads)
     manifest = {"stamp": _stamp(fp, scene, n), "figure": "trajectories.png",
                 "episodes": [{"episode": r["episode"], "outcome": r["outcome"], "nav_time_s": r["nav_time_s"],
-                              "recording": f"{scene}_ep{r['episode']:03d}.rrd"} for r in rows]}
+                              "steps": len(r["robot_xy"]) - 1, "recording": f"{scene}_ep{r['episode']:03d}.rrd",
+                              "replay": f"{scene}_ep{r['episode']:03d}.gif"} for r in rows]}
     (media / MANIFEST).write_text(json.dumps(manifest, indent=1) + "\n")
     return manifest
 

@@ -49,14 +49,17 @@ def short(v, limit: int = 60) -> str:
 
 
 def diff_rows(old: str, new: str) -> list[str]:
-    """Rows that differ between two generated READMEs, named by section and first cell."""
+    """Rows that differ between two generated READMEs, named by section and first cell (the method, after
+    a ranked table's ``#``)."""
     def rows(text):
         out, section = {}, ""
         for line in text.splitlines():
             if line.startswith("#"):
                 section = line.lstrip("# ").strip()
             elif line.startswith("| ") and not line.startswith("|---"):
-                key = (section, line.split("|")[1].strip())
+                cells = [c.strip() for c in line.split("|")]
+                rank = cells[1] == "#" or cells[1].isdigit() or (cells[1] == "—" and len(cells) > 3)
+                key = (section, cells[2] if rank else cells[1])  # a ranked table's row: named by its method
                 while key in out:
                     key = (key[0], key[1] + "'")
                 out[key] = line

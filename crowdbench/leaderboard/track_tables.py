@@ -14,8 +14,9 @@ from crowdbench.leaderboard.render import (
     markers,
     metric_table,
     scene_cell,
-    seed_cell,
+    seeds_cell,
 )
+from crowdbench.leaderboard.stats import ranked
 from crowdbench.leaderboard.text import md
 from crowdbench.leaderboard.tracks import TRACK_ORDER, TRACKS, Track
 
@@ -42,10 +43,20 @@ def headline(r: dict, track: Track, metric: str, digits: int) -> tuple[float | N
     return sum(vals) / len(vals), fmt(sum(vals) / len(vals), digits)
 
 
+def headline_scenes(r: dict, track: Track) -> list[str]:
+    """The scenes (settings) a track's figure averages: the paper scenes, the scenes of an unofficial
+    subset, or the CrowdNav setting."""
+    if not track.replay:
+        return [track.setting]
+    return list(PAPER_SCENES) if all(s in r["scenes"] for s in PAPER_SCENES) else list(r["scenes"])
+
+
 def group_cell(g: list[dict], track: Track, metric: str, digits: int) -> tuple[float | None, str]:
+    """A run's :func:`headline`; several seeds: their mean [95% two-level bootstrap interval]."""
     if len(g) == 1:
         return headline(g[0], track, metric, digits)
-    return seed_cell([headline(r, track, metric, digits)[0] for r in g], digits)
+    cols = headline_scenes(g[0], track)
+    return seeds_cell([[r["scenes"].get(s, {}).get(metric) for s in cols] for r in g], metric, digits)
 
 
 def above_the_oracle(by_track: dict[str, list[dict]]) -> list[str]:
@@ -72,22 +83,23 @@ def track_table(track: Track, results: list[dict], scenes: list[str]) -> list[st
     cols = SUMMARY + (CROWD if track.protocol == "v2" else []) + columns(home)  # social: if some result has them
     where = "average over the four paper scenes" if track.replay else f"CrowdNav's test cases of {track.setting}"
     L = [f"## `{track.name}`: {track.title}", "",
-         f"Each cell: {where}; a single run shows its 95% interval, several seeds mean ± sd."
+         f"Ranked (#) by success, the first column. Each cell: {where}; mean [95% interval] of a run, or over "
+         "several seeds (two-level bootstrap: seeds, then episodes)."
          + ("" if track.privileged_ok else " The oracle does not apply: these humans react to the robot, so "
-            "their future is not known in advance."), ""]
-    head = ["method", "trained on", "seeds", *(c[1] for c in cols)]
+            "their future is not known in advance."), "", f"![{track.name}, ranked](plots/{track.name}.png)", ""]
+    head = ["#", "method", "trained on", "seeds", *(c[1] for c in cols)]
     L += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for g in groups:
+    for rank, g in ranked(groups, lambda g: group_cell(g, track, "success_rate", 3)[0]):
         origin = trained_on(g[0]) or "—"
-        cells = [label(g), md(origin), str(len(g))] + [group_cell(g, track, m, d)[1] for m, _, d in cols]
-        L.append("| " + " | ".join(cells) + " |")
+        cells = [str(rank or "—"), label(g), md(origin), str(len(g))]
+        L.append("| " + " | ".join(cells + [group_cell(g, track, m, d)[1] for m, _, d in cols]) + " |")
     if track.replay and len(scenes) > 1:
         L += ["", "Success rate per scene:", "", *metric_table(groups, scenes, "success_rate", 3)]
     return L
 
 
 def transfer_table(by_track: dict[str, list[dict]]) -> list[str]:
-    """Every learned entry (mean ± sd over seeds) on every track; bold: the track it was trained on."""
+    """Every learned entry (mean [95% interval] over seeds) on every track; bold: the track it was trained on."""
     entries: dict[tuple[str, str], dict[str, list[dict]]] = {}  # (label, trained on): one label may be trained twice
     for name, results in by_track.items():
         for r in results:
@@ -96,8 +108,8 @@ def transfer_table(by_track: dict[str, list[dict]]) -> list[str]:
     tracks = [t for t in TRACK_ORDER if t in by_track]
     head = ["method", "trained on", "seeds", *(f"`{t}`" for t in tracks)]
     L = ["## Transfer: success of every learned entry on every track", "",
-         ("Replay tracks: average over the four paper scenes; CrowdNav tracks: its test cases. Mean ± sd over "
-         "seeds; **bold**: the track the entry was trained on."), "",
+         ("Replay tracks: average over the four paper scenes; CrowdNav tracks: its test cases. Mean [95% "
+         "interval] over seeds; **bold**: the track the entry was trained on."), "",
          "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     rows = []
     for (entry, origin), per in entries.items():

@@ -1,4 +1,4 @@
-"""Static figures with matplotlib (Agg, headless): episode trajectories and training curves.
+"""Static figures with matplotlib (Agg, headless): episode trajectories (the commands: crowdbench/viz/commands.py).
 
 - ``crowdbench viz <episodes.jsonl | results dir> [--episode N] [--scene S] [--grid K] [--out FILE]``:
   one episode in the style of the paper's Fig. 6 (robot path, start, goal, the humans' paths over
@@ -7,20 +7,17 @@
   paths come from the scene data (the same resampled replay the simulator used): the episode
   starts at grid step ``start_time_s / dt`` and lasts ``len(robot_xy) - 1`` steps. Humans that
   never come within the sensing range of the robot are drawn faintly, without markers.
-- ``crowdbench plot <run dir> [<run dir> ...] [--out FILE] [--smooth N]``: success / collision
-  rates (training window and the held-out probe), episode return and losses vs environment
-  frames from the TorchRL ``CSVLogger`` files ``RUN/logs/scalars/<name>.csv`` (``step,value``
-  rows). Runs whose checkpoint configs differ only in the seed (and output/budget keys) form one
-  group: its mean is drawn with a min-max band over the seeds.
+- ``crowdbench viz ... --video FILE.gif|FILE.mp4``: the episode animated, one frame per step
+  (crowdbench/viz/video.py).
+- ``crowdbench plot``: training curves (crowdbench/viz/curves.py).
 
-Bad input (missing file, no such episode or scene, a run without CSV logs) raises ``ValueError``
-with a one-line message; the CLI prints it and exits with code 2.
+Bad input (missing file, no such episode or scene) raises ``ValueError`` with a one-line message; the
+CLI prints it and exits with code 2.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import math
 from pathlib import Path
 
@@ -30,16 +27,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from crowdbench.outputs import check_writable_file
-from crowdbench.viz.records import load_rows
-
 ROBOT = "#1f5fd0"
 GOAL = "#d62728"
 TIME_CMAP = "viridis"
-SCALARS = ("logs", "scalars")
-# keys that do not change what is trained: runs differing only in these are seeds of one config
-NOT_CONFIG = ("seed", "out", "resume", "train.max_minutes", "train.total_frames", "train.checkpoint_every",
-              "train.save_buffer", "train.logger", "viz", "eval")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -85,9 +75,36 @@ def human_paths(scene, t0: int, n: int) -> dict[int, tuple[np.ndarray, np.ndarra
     return out
 
 
+def extent(row: dict, margin: float = 1.5) -> tuple[np.ndarray, np.ndarray]:
+    """The centre and the size (m) of the area an episode's figure shows: its path, start and goal, plus
+    ``margin`` on every side."""
+    span = np.vstack([np.asarray(row["robot_xy"], dtype=float), [row["start"], row["goal"]]])
+    lo, hi = span.min(0) - margin, span.max(0) + margin
+    return (lo + hi) / 2, hi - lo
+
+
+def legend_handles(collision: bool) -> list:
+    """The legend's entries: the robot, start, goal and both kinds of human path."""
+    from matplotlib.lines import Line2D
+
+    handles = [Line2D([], [], color=ROBOT, lw=1.8, marker="o", mfc="white", ms=5, label="robot (body at time marks)"),
+               Line2D([], [], color=ROBOT, marker="s", ls="", ms=6, label="start"),
+               Line2D([], [], color=GOAL, marker="*", ls="", ms=10, label="goal"),
+               Line2D([], [], color="0.35", lw=0.9, marker="o", mfc="0.55", mec="none", ms=4,
+                      label="human within sensing range"),
+               Line2D([], [], color="0.6", lw=0.6, alpha=0.4, label="human out of range")]
+    if collision:
+        handles.append(Line2D([], [], color=GOAL, marker="x", ls="", ms=8, mew=2, label="collision"))
+    return handles
+
+
 def draw_episode(ax, row: dict, time_base: str = "true", mark_every_s: float = 2.0, sensing_range: float = 5.0,
-                 robot_radius: float = 0.2, human_radius: float = 0.1, legend: bool = True, labels: bool = True):
-    """Draw one episode record on ``ax`` (Fig. 6 style); returns the time colour normaliser."""
+                 robot_radius: float = 0.2, human_radius: float = 0.1, legend: bool = True, labels: bool = True,
+                 size: np.ndarray | None = None, norm=None):
+    """Draw one episode record on ``ax`` (Fig. 6 style); returns the time colour normaliser. ``size``: the
+    width and height (m) shown around the episode's centre (a grid passes one size: equal scales);
+    ``norm``: the time colours (a grid passes one: equal colours)."""
+    from matplotlib import patheffects
     from matplotlib.patches import Circle
 
     from crowdbench.data.scenes import load_scene
@@ -97,11 +114,11 @@ def draw_episode(ax, row: dict, time_base: str = "true", mark_every_s: float = 2
     xy = np.asarray(row["robot_xy"], dtype=float)
     n = len(xy) - 1
     t0 = round(row["start_time_s"] / dt)
-    duration = n * dt
-    norm = plt.Normalize(0.0, max(duration, dt))
+    norm = norm or plt.Normalize(0.0, max(n * dt, dt))
     cmap = matplotlib.colormaps[TIME_CMAP]
     every = max(1, round(mark_every_s / dt))
     marks = sorted(set(range(0, n + 1, every)) | {n})
+    halo = [patheffects.withStroke(linewidth=2.2, foreground="white")]  # readable over the paths
 
     for pid, (k, p) in human_paths(scene, t0, n).items():
         near = np.linalg.norm(p - xy[np.minimum(k, n)], axis=1).min() <= sensing_range
@@ -113,260 +130,73 @@ def draw_episode(ax, row: dict, time_base: str = "true", mark_every_s: float = 2
         for kk, pp in zip(k[sel], p[sel], strict=True):
             ax.add_patch(Circle(pp, human_radius, color=cmap(norm(kk * dt)), alpha=0.9, lw=0))
         if labels:
-            ax.annotate(str(pid), p[0], fontsize=6, color="0.3", xytext=(2, 2), textcoords="offset points")
+            ax.annotate(str(pid), p[0], fontsize=7, color="0.2", xytext=(2, 2), textcoords="offset points",
+                        path_effects=halo)
 
-    ax.plot(xy[:, 0], xy[:, 1], color=ROBOT, lw=1.8, label="robot path", zorder=3)
+    ax.plot(xy[:, 0], xy[:, 1], color=ROBOT, lw=1.8, zorder=3)
     for k in marks:
         ax.add_patch(Circle(xy[k], robot_radius, facecolor=cmap(norm(k * dt)), edgecolor=ROBOT, lw=1.0, zorder=4))
         if labels:
-            ax.annotate(f"{k * dt:g}", xy[k], fontsize=6, color=ROBOT, xytext=(4, -8), textcoords="offset points",
-                        zorder=5)
-    ax.plot(*row["start"], "s", color=ROBOT, ms=7, label="start", zorder=5)
-    ax.plot(*row["goal"], "*", color=GOAL, ms=14, label="goal", zorder=5)
+            ax.annotate(f"{k * dt:g}", xy[k], fontsize=7, color=ROBOT, xytext=(4, -9), textcoords="offset points",
+                        zorder=5, path_effects=halo)
+    ax.plot(*row["start"], "s", color=ROBOT, ms=7, zorder=5)
+    ax.plot(*row["goal"], "*", color=GOAL, ms=14, zorder=5)
     if row["outcome"] == "collision":
-        ax.plot(*xy[-1], "x", color=GOAL, ms=11, mew=2.5, label="collision", zorder=6)
+        ax.plot(*xy[-1], "x", color=GOAL, ms=11, mew=2.5, zorder=6)
     ax.set_aspect("equal")
-    span = np.vstack([xy, [row["start"], row["goal"]]])
-    lo, hi = span.min(0) - 1.5, span.max(0) + 1.5
-    ax.set_xlim(lo[0], hi[0])
-    ax.set_ylim(lo[1], hi[1])
+    centre, own = extent(row)
+    size = own if size is None else np.asarray(size)
+    ax.set_xlim(centre[0] - size[0] / 2, centre[0] + size[0] / 2)
+    ax.set_ylim(centre[1] - size[1] / 2, centre[1] + size[1] / 2)
     nav = f", {row['nav_time_s']:.2f} s" if row.get("nav_time_s") is not None else ""
     ax.set_title(f"{row['scene']} episode {row['episode']}: {row['outcome']}{nav}", fontsize=9)
     if legend:
-        ax.legend(fontsize=7, loc="best")
+        ax.legend(handles=legend_handles(row["outcome"] == "collision"), fontsize=7, loc="best", framealpha=0.85)
     return norm
 
 
 def episode_figure(row: dict, out: Path, time_base: str = "true", mark_every_s: float = 2.0) -> Path:
-    fig, ax = plt.subplots(figsize=(7, 6))
+    _, (w, h) = extent(row)
+    fig, ax = plt.subplots(figsize=(7.0, min(max(6.0 * h / w, 3.5), 9.0)), layout="constrained")  # the path's extent
     norm = draw_episode(ax, row, time_base, mark_every_s)
-    (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
-    fig.set_size_inches(8.0, min(max(7.0 * (y1 - y0) / (x1 - x0) + 1.2, 4.0), 10.0))  # follow the path's extent
-    fig.colorbar(plt.cm.ScalarMappable(norm=norm, cmap=TIME_CMAP), ax=ax, label="time since start (s)", shrink=0.8)
+    fig.colorbar(plt.cm.ScalarMappable(norm=norm, cmap=TIME_CMAP), ax=ax, label="time since start (s)",
+                 fraction=0.04, pad=0.02)
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     return _save(fig, out)
 
 
 def grid_figure(rows: list[dict], out: Path, time_base: str = "true", mark_every_s: float = 2.0) -> Path:
+    """The episodes side by side at one scale (every panel shows the same width and height in metres) and
+    with one time colour scale, one legend and one colour bar for all."""
     cols = math.ceil(math.sqrt(len(rows)))
     nrows = math.ceil(len(rows) / cols)
-    fig, axes = plt.subplots(nrows, cols, figsize=(3.6 * cols, 3.4 * nrows), squeeze=False)
+    size = np.max([extent(r)[1] for r in rows], axis=0)
+    norm = plt.Normalize(0.0, max(max(len(r["robot_xy"]) - 1, 1) * float(r["dt"]) for r in rows))
+    panel = 3.0
+    fig, axes = plt.subplots(nrows, cols, figsize=(panel * cols + 0.8, panel * nrows * size[1] / size[0] + 0.9),
+                             squeeze=False, layout="constrained")
     for ax, row in zip(axes.flat, rows, strict=False):
-        draw_episode(ax, row, time_base, mark_every_s, legend=False, labels=False)
+        draw_episode(ax, row, time_base, mark_every_s, legend=False, labels=False, size=size, norm=norm)
         ax.tick_params(labelsize=6)
+        ax.title.set_fontsize(8)
     for ax in axes.flat[len(rows):]:
         ax.axis("off")
-    fig.suptitle(f"{rows[0]['scene']}: first {len(rows)} episodes (markers every {mark_every_s:g} s, "
-                 "colour = time)", fontsize=10)
-    return _save(fig, out, dpi=90)
+    fig.colorbar(plt.cm.ScalarMappable(norm=norm, cmap=TIME_CMAP), ax=axes.ravel().tolist(),
+                 label="time since start (s)", fraction=0.03, pad=0.02)
+    fig.legend(handles=legend_handles(any(r["outcome"] == "collision" for r in rows)), loc="outside lower center",
+               ncol=3, fontsize=7, frameon=False)
+    fig.suptitle(f"{rows[0]['scene']}: first {len(rows)} episodes, {size[0]:.0f} m x {size[1]:.0f} m each "
+                 f"(markers every {mark_every_s:g} s)", fontsize=10)
+    return _save(fig, out, dpi=100)
 
 
-def _save(fig, out: Path, dpi: int = 120, rect=(0, 0, 1, 1)) -> Path:
+def _save(fig, out: Path, dpi: int = 120, rect=None) -> Path:
+    """Save tightly cropped (``rect``: also lay the axes out within it, room left for a figure legend)."""
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.tight_layout(rect=rect)
-    fig.savefig(out, dpi=dpi)
+    if rect is not None:
+        fig.tight_layout(rect=rect)
+    fig.savefig(out, dpi=dpi, bbox_inches="tight", pad_inches=0.05)
     plt.close(fig)
     return out
-
-
-def viz_command(argv: list[str]) -> Path:
-    p = _Parser(prog="crowdbench viz", description="A figure of recorded episodes (paper Fig. 6 style).")
-    p.add_argument("path", help="an episodes.jsonl, or the results directory holding it (eval.save_episodes=true)")
-    p.add_argument("--episode", type=int, default=None, help="episode id (default: the scene's first)")
-    p.add_argument("--scene", default=None, help="scene (default: the file's first)")
-    p.add_argument("--grid", type=int, default=None, metavar="K", help="the scene's first K episodes in one figure")
-    p.add_argument("--mark-every", type=float, default=2.0, metavar="S", help="time marks every S seconds")
-    p.add_argument("--out", default=None, metavar="FILE.png", help="default: <results dir>/viz/<scene>_ep<id>.png")
-    a = p.parse_args(argv)
-    if a.grid is not None and a.grid < 1:
-        raise ValueError(f"--grid must be >= 1, got {a.grid}")
-    if a.mark_every <= 0:
-        raise ValueError(f"--mark-every must be > 0 s, got {a.mark_every}")
-    rows, path, time_base = load_rows(Path(a.path))
-    scene, rows = pick_scene(rows, a.scene, path)
-    if a.grid is not None:
-        out = Path(a.out) if a.out else path.parent / "viz" / f"{scene}_grid{a.grid}.png"
-        check_writable_file(out)
-        return grid_figure(rows[: a.grid], out, time_base, a.mark_every)
-    row = rows[0] if a.episode is None else pick_episode(rows, a.episode, scene, path)
-    out = Path(a.out) if a.out else path.parent / "viz" / f"{scene}_ep{row['episode']:03d}.png"
-    check_writable_file(out)
-    return episode_figure(row, out, time_base, a.mark_every)
-
-
-# ---------------------------------------------------------------------------------------------- curves
-def read_scalars(run: Path) -> dict[str, np.ndarray]:
-    """``{name: [n, 2] (frames, value)}`` from ``RUN/logs/scalars/*.csv`` (TorchRL CSVLogger)."""
-    run = Path(run)
-    if not run.is_dir():
-        raise ValueError(f"run directory not found: {run}")
-    files = sorted(run.joinpath(*SCALARS).glob("*.csv"))
-    if not files:
-        raise ValueError(f"no training log in {run}: expected {run.joinpath(*SCALARS)}/<name>.csv (TorchRL CSVLogger)")
-    out = {}
-    for f in files:
-        try:
-            data = np.loadtxt(f, delimiter=",", ndmin=2)
-        except ValueError:
-            raise ValueError(f"{f}: not a step,value CSV") from None
-        if data.size:
-            out[f.stem] = data[np.argsort(data[:, 0], kind="stable")]
-    return out
-
-
-def run_config(run: Path) -> dict | None:
-    """The run's config from its checkpoint (``weights_only=True``), or ``None`` without one."""
-    ckpt = Path(run) / "checkpoint.pt"
-    if not ckpt.is_file():
-        return None
-    import torch
-
-    try:
-        return torch.load(ckpt, map_location="cpu", weights_only=True).get("config")
-    except Exception:  # noqa: BLE001 - a broken checkpoint only loses the grouping
-        return None
-
-
-def _flat(d, prefix="") -> dict:
-    out = {}
-    for k, v in (d or {}).items():
-        key = f"{prefix}{k}"
-        if isinstance(v, dict):
-            out.update(_flat(v, key + "."))
-        else:
-            out[key] = v
-    return out
-
-
-def group_runs(runs: list[Path]) -> list[tuple[str, list[Path]]]:
-    """Runs grouped by config (seed and output/budget keys ignored), labelled by what differs."""
-    groups: dict[str, list[Path]] = {}
-    flats: dict[str, dict] = {}
-    for run in runs:
-        cfg = run_config(run)
-        if cfg is None:
-            key, flat = f"dir:{run}", {"run": Path(run).name}
-        else:
-            flat = {k: v for k, v in _flat(cfg).items() if not any(k == n or k.startswith(n + ".") for n in NOT_CONFIG)}
-            key = json.dumps(flat, sort_keys=True, default=str)
-        groups.setdefault(key, []).append(run)
-        flats[key] = flat
-    keys = list(groups)
-    differ = sorted({k for a in keys for k in flats[a] if any(flats[b].get(k) != flats[a][k] for b in keys)})
-    out = []
-    for key in keys:
-        f = flats[key]
-        if "run" in f:
-            label = f["run"]
-        else:
-            label = f"{f.get('algo.name', '?')} + {f.get('encoder.name', '?')}"
-            extra = [f"{k}={f.get(k, '-')}" for k in differ if k not in ("algo.name", "encoder.name", "run")]
-            label = " ".join([label, *extra])
-        n = len(groups[key])
-        out.append((label + (f" ({n} seeds)" if n > 1 else ""), groups[key]))
-    return out
-
-
-def smooth(y: np.ndarray, n: int) -> np.ndarray:
-    """Trailing moving average over ``n`` logged points (``n <= 1``: unchanged)."""
-    if n <= 1 or len(y) < 2:
-        return y
-    c = np.cumsum(np.insert(y, 0, 0.0))
-    k = np.minimum(np.arange(1, len(y) + 1), n)
-    return (c[1:] - c[np.arange(1, len(y) + 1) - k]) / k
-
-
-def band(series: list[np.ndarray], n_smooth: int) -> tuple[np.ndarray, ...]:
-    """Mean and min/max of several runs' ``[n, 2]`` series on a common frame grid (their overlap)."""
-    series = [np.column_stack((s[:, 0], smooth(s[:, 1], n_smooth))) for s in series]
-    if len(series) == 1:
-        s = series[0]
-        return s[:, 0], s[:, 1], s[:, 1], s[:, 1]
-    lo, hi = max(s[0, 0] for s in series), min(s[-1, 0] for s in series)
-    x = np.unique(np.concatenate([s[:, 0] for s in series]))
-    x = x[(x >= lo) & (x <= hi)]
-    ys = np.stack([np.interp(x, s[:, 0], s[:, 1]) for s in series])
-    return x, ys.mean(0), ys.min(0), ys.max(0)
-
-
-PANELS = (
-    ("success / collision rate", (("success_rate", "-", "training success"), ("probe_*_success", "o--",
-                                                                                "probe success"),
-                                  ("collision_rate", ":", "training collision"))),
-    ("episode return", (("episode_return", "-", "return"),)),
-    ("critic loss", (("loss_critic", "-", "critic"),)),
-    ("actor loss", (("loss_actor", "-", "actor"),)),
-)
-
-
-def plot_runs(runs: list[Path], out: Path, n_smooth: int = 20) -> Path:
-    """Curves of one or several runs (see the module docstring); returns the PNG path."""
-    logs = {Path(r): read_scalars(Path(r)) for r in runs}
-    groups = group_runs(list(logs))
-    import fnmatch
-
-    panels = [(title, spec) for title, spec in PANELS
-              if any(fnmatch.filter(lg, pat) for lg in logs.values() for pat, _, _ in spec)]
-    if not panels:
-        raise ValueError(f"no known scalars in {', '.join(map(str, runs))} (expected success_rate, loss_critic, ...)")
-    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.6), squeeze=False)
-    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    several = len(groups) > 1
-    for gi, (label, members) in enumerate(groups):
-        c = colours[gi % len(colours)]
-        for ax, (title, spec) in zip(axes[0], panels, strict=True):
-            for pat, style, name in spec:
-                names = sorted({n for r in members for n in fnmatch.filter(logs[r], pat)})
-                for sname in names:
-                    series = [logs[r][sname] for r in members if sname in logs[r]]
-                    k = n_smooth if sname.startswith("loss") else 1
-                    x, m, lo, hi = band(series, k)
-                    if several:  # colours name the runs (one legend under the figure), line styles the curves
-                        lab = name if len(spec) > 1 and gi == 0 else None
-                    else:
-                        lab = f"{label}: {name}" if len(spec) > 1 else label
-                    ax.plot(x, m, style, color=c, lw=1.3, ms=3, label=lab)
-                    if len(series) > 1:
-                        ax.fill_between(x, lo, hi, color=c, alpha=0.2, lw=0)
-            ax.set_title(title, fontsize=10)
-            ax.set_xlabel("environment frames")
-            ax.ticklabel_format(axis="x", style="sci", scilimits=(0, 3))
-    for ax, (title, _) in zip(axes[0], panels, strict=True):
-        if title.startswith("success"):
-            ax.set_ylim(-0.02, 1.02)
-        if title == "critic loss" and all(ln.get_ydata().min() > 0 for ln in ax.get_lines()):
-            ax.set_yscale("log")  # a diverging critic loss spans orders of magnitude
-        if ax.get_legend_handles_labels()[0]:
-            ax.legend(fontsize=7)
-    if any(len(m) > 1 for _, m in groups):
-        fig.suptitle(f"mean over seeds, band = min-max; losses smoothed over {n_smooth} logged points", fontsize=9)
-    bottom = 0.0
-    if several:
-        from matplotlib.lines import Line2D
-
-        handles = [Line2D([], [], color=colours[i % len(colours)], lw=2) for i in range(len(groups))]
-        fig.legend(handles, [label for label, _ in groups], loc="lower center", ncol=min(len(groups), 2), fontsize=8,
-                   frameon=False)
-        bottom = 0.06 * ((len(groups) + 1) // 2) + 0.02  # room for the legend's rows
-    return _save(fig, out, rect=(0, bottom, 1, 1))
-
-
-def plot_command(argv: list[str]) -> Path:
-    p = _Parser(prog="crowdbench plot", description="Training curves of runs (success, collision, return, losses).")
-    p.add_argument("runs", nargs="+", metavar="RUN", help="run directories (RUN/logs/scalars/*.csv)")
-    p.add_argument("--out", default=None, metavar="FILE.png", help="default: <first RUN>/curves.png")
-    p.add_argument("--smooth", type=int, default=20, help="moving average over N logged points (N >= 1)")
-    a = p.parse_args(argv)
-    if a.smooth < 1:
-        p.error(f"--smooth: must be an integer >= 1 (got {a.smooth})")
-    out = Path(a.out) if a.out else Path(a.runs[0]) / "curves.png"
-    check_writable_file(out)
-    return plot_runs([Path(r) for r in a.runs], out, a.smooth)
-
-
-def main(command: str, argv: list[str]) -> int:
-    out = viz_command(argv) if command == "viz" else plot_command(argv)
-    print(f"wrote {out}")
-    return 0
