@@ -23,6 +23,8 @@ SYSTEM = {  # program -> (Debian package, install command)
     "bwrap": ("bubblewrap", "apt-get install bubblewrap"),
     "chromium": ("chromium", "apt-get install chromium chromium-driver"),
     "chromedriver": ("chromium-driver", "apt-get install chromium chromium-driver"),
+    "ffmpeg": ("ffmpeg", "apt-get install ffmpeg"),
+    "ffprobe": ("ffmpeg", "apt-get install ffmpeg"),
 }
 
 

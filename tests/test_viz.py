@@ -229,10 +229,10 @@ def test_viz_video_one_frame_per_step(tmp_path, monkeypatch, capsys):
 
 
 def test_viz_video_mp4_frame_count(tmp_path):
-    from matplotlib import animation
+    from conftest import require_system
 
-    if not (animation.writers.is_available("ffmpeg") and shutil.which("ffprobe")):
-        pytest.skip("an MP4 needs ffmpeg (Debian package: ffmpeg)")
+    require_system("ffmpeg")
+    require_system("ffprobe")
     evaluate(StraightToGoal(), ["hotel"], 2, out_dir=tmp_path, save_episodes=True)
     row = json.loads((tmp_path / "episodes.jsonl").read_text().splitlines()[0])
     assert main(["viz", str(tmp_path), "--video", str(tmp_path / "ep.mp4")]) == 0
