@@ -27,7 +27,7 @@ def test_a_shipped_format_1_checkpoint_loads_with_the_upgraded_config():
     raw = torch.load(SHIPPED, map_location="cpu", weights_only=True)
     assert raw["format"] == LEGACY_TAG and "per_weights" not in raw["config"]["algo"]  # really format 1
     state = load_checkpoint(SHIPPED)
-    assert state["format"] == FORMAT == 6
+    assert state["format"] == FORMAT == 7
     assert state["config"]["env"]["humans"] == "replay"  # format 3: trained among the humans as recorded
     algo = state["config"]["algo"]
     assert algo["per_weights"] is False
@@ -118,6 +118,13 @@ def test_format_4_fills_the_warm_start_keys_with_the_schema_defaults():
     assert PRETRAIN_DEFAULTS == schema
     state = load_checkpoint(SHIPPED)
     assert {k: state["config"]["train"][k] for k in schema} == schema
+
+
+def test_format_6_runs_had_no_checkpoint_expert():
+    shipped = ROOT / "leaderboard" / "submissions" / "sarl_value_query_s0" / "checkpoint.pt"
+    raw = torch.load(shipped, map_location="cpu", weights_only=True)
+    assert raw["format"] == 6 and "pretrain_checkpoint" not in raw["config"]["train"]
+    assert load_checkpoint(shipped)["config"]["train"]["pretrain_checkpoint"] is None
 
 
 def test_formats_5_and_6_keep_older_runs_on_the_similarity_slots_and_scores_they_trained_with(tmp_path):
