@@ -12,7 +12,11 @@ differ from the AVX2 and baseline ones, which both agree with the C library's; t
 disabled (read when numpy is imported, which torch does). The pin overrides the caller's environment: an official number must not depend
 on it. Training is not pinned (the portable kernels are slower, and its numbers come from evaluation);
 nor is the evaluation at the end of ``crowdbench run`` (results.json records what computed it).
-Measured on the shipped checkpoints (docs/benchmarks.md): evaluation takes ~2x longer pinned.
+Measured on the shipped checkpoints (docs/benchmarks.md): evaluation takes ~2x longer pinned
+(+77% CPU on gatedgcn_td3_s0, +33% on mlp_td3_s0), ATen's share and MKL's; NumPy's is free. None of the
+three can go: ATen's vectorised kernels agree with the portable ones on exactly-rounded ops but not on
+``sigmoid``, ``softmax``, ``atan2`` or norms, and ATen reads its capability once, for every op; MKL's
+native sgemm differs from its COMPATIBLE branch, whose bits the committed numbers are (tests/test_numerics.py).
 """
 
 from __future__ import annotations
