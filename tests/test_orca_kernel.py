@@ -3,9 +3,6 @@ value for value), against RVO2 (pyrvo), and under two CPU targets (the same byte
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +11,7 @@ import torch
 
 from crowdbench.envs.humans import orca, orca_kernel
 from crowdbench.envs.humans.rvo2_reference import KINDS, random_configs, rvo2_velocities
+from tests.worlds import outputs_under_two_targets
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = {"time_horizon": 2.0, "dt": 0.25, "neighbor_dist": 4.0, "max_neighbors": 6}
@@ -142,19 +140,6 @@ np.save(sys.argv[1], np.stack(out))
 def test_the_same_bytes_under_generic_and_host_targets(tmp_path):
     """Compiled for a generic x86-64 (SSE2 only) and for this CPU (AVX2/FMA/...) in two processes, each with
     its own (empty) cache: no FMA instruction in either's code, and the outputs are the same bytes."""
-    got = {}
-    for target in ("generic", "host"):
-        env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / f"cache-{target}"), "PYTHONPATH": str(ROOT)}
-        env.pop("NUMBA_CPU_NAME", None)
-        env.pop("NUMBA_CPU_FEATURES", None)
-        if target == "generic":
-            env["NUMBA_CPU_NAME"] = "generic"
-        out = tmp_path / f"{target}.npy"
-        # (a cache of another target is never loaded: numba keys its cache by CPU name and features)
-        p = subprocess.run([sys.executable, "-c", _RUN, str(out)], env=env, capture_output=True, text=True,
-                           timeout=600, check=False, cwd=tmp_path)
-        assert p.returncode == 0, p.stderr[-2000:]
-        assert p.stdout == target
-        got[target] = np.load(out)
+    got = outputs_under_two_targets(tmp_path, _RUN, [], timeout=600)
     assert got["generic"].tobytes() == got["host"].tobytes()
     assert np.isfinite(got["host"]).all()

@@ -4,9 +4,6 @@ hand values, its exp/atan2 against Python's math, and under two CPU targets (the
 from __future__ import annotations
 
 import math
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +12,7 @@ import torch
 
 from crowdbench.envs.humans import sfm, sfm_kernel
 from crowdbench.envs.humans.sfm import SFMParams
+from tests.worlds import outputs_under_two_targets
 
 ROOT = Path(__file__).resolve().parents[1]
 KINDS = ("sparse", "dense", "overlap", "at_goal")
@@ -177,18 +175,6 @@ np.save(sys.argv[1], np.concatenate([np.stack(out).ravel().astype(np.float64), c
 def test_the_same_bytes_under_generic_and_host_targets(tmp_path):
     """The social-force kernel and CrowdNav's case sampler compiled for a generic x86-64 and for this CPU in two
     processes, each with its own (empty) cache: no FMA instruction in either, the same output bytes."""
-    got = {}
-    for target in ("generic", "host"):
-        env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / f"cache-{target}"), "PYTHONPATH": str(ROOT)}
-        env.pop("NUMBA_CPU_NAME", None)
-        env.pop("NUMBA_CPU_FEATURES", None)
-        if target == "generic":
-            env["NUMBA_CPU_NAME"] = "generic"
-        out = tmp_path / f"{target}.npy"
-        p = subprocess.run([sys.executable, "-c", _RUN, str(out), str(ROOT / "tests")], env=env, capture_output=True,
-                           text=True, timeout=900, check=False, cwd=tmp_path)
-        assert p.returncode == 0, p.stderr[-2000:]
-        assert p.stdout == target
-        got[target] = np.load(out)
+    got = outputs_under_two_targets(tmp_path, _RUN, [str(ROOT / "tests")], timeout=900)
     assert got["generic"].tobytes() == got["host"].tobytes()
     assert np.isfinite(got["host"]).all()

@@ -51,3 +51,31 @@ SMALL_ENCODERS = {"gatedgcn": {"dim": 16}, "gcn": {"dim": 16}, "mlp": {"dim": 16
                   "sarl": {"dim": 16, "embed": [16, 16], "interact": [16], "attention": [16], "hidden": [16]},
                   "lstm_rl": {"dim": 16, "hidden_size": 16, "hidden": [16]}, "rgl": {"dim": 16, "embed": [16]},
                   "gat": {"dim": 16}, "dsrnn": {"dim": 16, "embed": 16, "attn_dim": 8}}
+
+
+def outputs_under_two_targets(tmp_path, script: str, args: list[str], timeout: float) -> dict:
+    """``{target: array}``: ``script`` (writes its array to ``argv[1]``, prints numba's CPU name) run for a
+    generic x86-64 (SSE2 only) and for this CPU, in two processes, each with its own empty numba cache (a
+    cache of another target is never loaded: numba keys it by CPU name and features)."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import numpy as np
+
+    root = Path(__file__).resolve().parents[1]
+    got = {}
+    for target in ("generic", "host"):
+        env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / f"cache-{target}"), "PYTHONPATH": str(root)}
+        env.pop("NUMBA_CPU_NAME", None)
+        env.pop("NUMBA_CPU_FEATURES", None)
+        if target == "generic":
+            env["NUMBA_CPU_NAME"] = "generic"
+        out = tmp_path / f"{target}.npy"
+        p = subprocess.run([sys.executable, "-c", script, str(out), *args], env=env, capture_output=True, text=True,
+                           timeout=timeout, check=False, cwd=tmp_path)
+        assert p.returncode == 0, p.stderr[-2000:]
+        assert p.stdout == target
+        got[target] = np.load(out)
+    return got

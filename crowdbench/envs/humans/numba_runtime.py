@@ -31,3 +31,17 @@ def set_threads() -> None:
     want = max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS))
     if numba.get_num_threads() != want:
         numba.set_num_threads(want)
+
+
+def compile_module(g: dict, helpers, solve, inline=()):
+    """Compile a kernel module in place, lazily (importing it does not import numba): each function of
+    ``g`` (the module's globals) named in ``helpers`` (and ``inline``: inlined in numba's IR, where a call
+    would stop a loop's vectorisation) replaced by its compiled version, ``g["_prange"]`` by numba's
+    ``prange``; returns ``solve`` compiled parallel over worlds (loaded from the cache when it can be)."""
+    numba = numba_module()
+    g["_prange"] = numba.prange
+    for name in inline:
+        g[name] = numba.njit(inline="always", **OPTIONS)(g[name])
+    for name in helpers:
+        g[name] = numba.njit(**OPTIONS)(g[name])
+    return numba.njit(parallel=True, **OPTIONS)(solve)

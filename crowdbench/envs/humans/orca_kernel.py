@@ -36,7 +36,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from crowdbench.envs.humans.numba_runtime import LOCK, OPTIONS, numba_module, set_threads
+from crowdbench.envs.humans.numba_runtime import LOCK, compile_module, set_threads
 
 F0, F1, HALF = np.float32(0.0), np.float32(1.0), np.float32(0.5)
 EPS = np.float32(1e-5)  # RVO_EPSILON, as crowdbench.envs.humans.lp.EPS
@@ -223,16 +223,10 @@ _prange = range  # numba.prange once compiled (see _compile)
 
 
 def _compile():
-    """Compile (or load from the cache) lazily: importing this module does not import numba."""
-    global _kernel, _prange
+    global _kernel
     if _kernel is None:
-        numba = numba_module()
-        _prange = numba.prange
-        g = globals()
-        for name in ("_step", "_lerp", "_violation", "_lp1", "_lp2_lines", "_lp2", "_lp2_direction", "_lp3", "_neighbors",
-                     "_line"):
-            g[name] = numba.njit(**OPTIONS)(g[name])
-        _kernel = numba.njit(parallel=True, **OPTIONS)(_solve)
+        _kernel = compile_module(globals(), ("_step", "_lerp", "_violation", "_lp1", "_lp2_lines", "_lp2",
+                                             "_lp2_direction", "_lp3", "_neighbors", "_line"), _solve)
     return _kernel
 
 

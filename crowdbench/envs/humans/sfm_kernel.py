@@ -31,7 +31,7 @@ import math
 import numpy as np
 import torch
 
-from crowdbench.envs.humans.numba_runtime import LOCK, OPTIONS, numba_module, set_threads
+from crowdbench.envs.humans.numba_runtime import LOCK, compile_module, set_threads
 from crowdbench.envs.humans.sfm import _EPS, SFMParams
 
 _kernel = None
@@ -293,17 +293,10 @@ def _solve(pos, vel, goal, valid, rad, vpref, opos, ovel, ovalid, orad, c, body,
 
 
 def _compile():
-    """Compile (or load from the cache) lazily: importing this module does not import numba."""
-    global _kernel, _prange
+    global _kernel
     if _kernel is None:
-        numba = numba_module()
-        _prange = numba.prange
-        g = globals()
-        for name in ("fd_exp", "fd_atan2"):  # inlined in numba's IR: a call in the pair loop stops vectorisation
-            g[name] = numba.njit(inline="always", **OPTIONS)(g[name])
-        for name in ("_hyp", "_rexp", "_sign", "_pair", "_block", "_load", "_pairs", "_human"):
-            g[name] = numba.njit(**OPTIONS)(g[name])
-        _kernel = numba.njit(parallel=True, **OPTIONS)(_solve)
+        _kernel = compile_module(globals(), ("_hyp", "_rexp", "_sign", "_pair", "_block", "_load", "_pairs", "_human"),
+                                 _solve, inline=("fd_exp", "fd_atan2"))
     return _kernel
 
 
