@@ -207,3 +207,39 @@ def test_the_long_rejection_runs_of_circle_20():
     for case in (66, 3):
         _equal_to_reference(case, "circle", 20)
     assert crowdnav_case(66, "circle", 20)["n_draws"] == 1840689
+
+
+UNPLACEABLE = 766005165  # a training case of circle crossing with 20 humans: human 19 never fits (CrowdNav loops)
+
+
+def test_a_case_crowdnav_cannot_place_is_refused_and_the_training_stream_replaces_it(monkeypatch):
+    """A training run at 20 humans hung in case generation: CrowdNav's rejection loop (transcribed and
+    compiled) never ends for this case. It is refused after MAX_DRAWS draws, and the training sampler takes
+    the stream's next draw instead; a stream that never meets such a case is unchanged."""
+    import torch
+
+    from crowdbench.envs import crowdnav, crowdnav_cases
+    from crowdbench.envs.crowdnav import CrowdNavConfig, CrowdNavScenario
+
+    monkeypatch.setattr(crowdnav_cases, "MAX_DRAWS", 2 * 10 ** 6)  # above the published lists' 1.8M
+    with pytest.raises(crowdnav_cases.UnplaceableCase, match="human 19 not placed within 2,000,000 draws"):
+        crowdnav_case(UNPLACEABLE, "circle", 20, "train")
+    scenario = CrowdNavScenario(CrowdNavConfig(n_humans=20))
+    plain = scenario.sampler(3)(4)
+    first = torch.randint(0, CROWDNAV.train_size, (4,), generator=torch.Generator().manual_seed(3)).tolist()
+    assert plain["case"].tolist() == first  # no unplaceable case: the stream as before
+
+    real = crowdnav.torch.randint
+    calls = []
+
+    def with_unplaceable_first(*args, **kwargs):  # the stream's first draw is the unplaceable case
+        out = real(*args, **kwargs)
+        calls.append(out.clone())
+        if len(calls) == 1:
+            out[0] = UNPLACEABLE
+        return out
+
+    monkeypatch.setattr(crowdnav.torch, "randint", with_unplaceable_first)
+    got = scenario.sampler(3)(4)
+    replacement = int(calls[1])
+    assert got["case"].tolist() == [replacement, *first[1:]]

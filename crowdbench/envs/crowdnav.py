@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from crowdbench.envs.core import SimConfig, check_seed, int_option
-from crowdbench.envs.crowdnav_cases import CROWDNAV, case_list, crowdnav_case
+from crowdbench.envs.crowdnav_cases import CROWDNAV, UnplaceableCase, case_list, crowdnav_case
 from crowdbench.envs.humans.reactive import CROWDS, ORCA_BACKENDS, SFM_BACKENDS, OrcaParams, reactive_crowd
 
 SCENARIOS = ("circle", "square")
@@ -151,7 +151,15 @@ class CaseSampler:
 
     def __call__(self, n: int) -> dict[str, torch.Tensor]:
         ids = torch.randint(0, CROWDNAV.train_size, (n,), generator=self.gen).tolist()
-        return self.scenario.cases(ids, "train")
+        sc, out = self.scenario, []
+        for i in ids:
+            while True:  # a case CrowdNav could never place is replaced by the stream's next draw
+                try:
+                    out.append(crowdnav_case(int(i), sc.cfg.scenario, sc.cfg.n_humans, "train"))
+                    break
+                except UnplaceableCase:
+                    i = int(torch.randint(0, CROWDNAV.train_size, (1,), generator=self.gen))
+        return _episodes(_stack(out))
 
     def state_dict(self) -> dict:
         return {"rng": self.gen.get_state()}

@@ -219,6 +219,13 @@ def _seeded(seed: int) -> np.random.RandomState:
 
 
 DRAWS = 3 * 1024  # draws taken at a time: the kernel's buffer is the draws it has not consumed plus these
+# CrowdNav's rejection loop never ends when a human cannot be placed (e.g. training case 766005165 of circle
+# crossing with 20 humans); no case of the published lists needs more than ~1.8M draws (~0.02 s here)
+MAX_DRAWS = 3 * 10 ** 7  # ~4 s of draws here
+
+
+class UnplaceableCase(ValueError):
+    """A case whose humans CrowdNav's rejection sampler does not place within :data:`MAX_DRAWS` draws."""
 MARGIN = 1e-9  # m: decisions this close to the threshold are re-made with CrowdNav's own scalar test
 
 
@@ -267,6 +274,9 @@ class _Run:
                 keep = self.forced_at >= p
                 self.forced_at, self.forced_ok = self.forced_at[keep] - p, self.forced_ok[keep]
                 base, p = base + p, 0
+                if base > MAX_DRAWS:
+                    raise UnplaceableCase(f"CrowdNav's {self.scen} crossing with {self.n} humans: human {i} not placed "
+                                          f"within {MAX_DRAWS:,} draws")
             else:
                 self._decide(i, p, cand, loop)
         self.used = base + p
