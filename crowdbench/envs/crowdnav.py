@@ -131,8 +131,12 @@ class CrowdNavScenario:
         100 validation cases (``phase="val"``, what training probes)."""
         return {k: v.clone() for k, v in _test_list(self.cfg.scenario, self.cfg.n_humans, phase).items()}
 
+    def case(self, i: int, phase: str = "test") -> dict:
+        """CrowdNav's case ``i`` of ``phase`` for this scenario (:func:`crowdnav_case`)."""
+        return crowdnav_case(int(i), self.cfg.scenario, self.cfg.n_humans, phase)
+
     def cases(self, ids, phase: str = "test") -> dict[str, torch.Tensor]:
-        return _episodes(_stack([crowdnav_case(int(i), self.cfg.scenario, self.cfg.n_humans, phase) for i in ids]))
+        return _episodes(_stack([self.case(i, phase) for i in ids]))
 
     def with_options(self, episode: dict, options: dict) -> dict[str, torch.Tensor]:
         """PettingZoo ``reset`` option ``case``: CrowdNav's test case of that number."""
@@ -151,11 +155,11 @@ class CaseSampler:
 
     def __call__(self, n: int) -> dict[str, torch.Tensor]:
         ids = torch.randint(0, CROWDNAV.train_size, (n,), generator=self.gen).tolist()
-        sc, out = self.scenario, []
+        out = []
         for i in ids:
             while True:  # a case CrowdNav could never place is replaced by the stream's next draw
                 try:
-                    out.append(crowdnav_case(int(i), sc.cfg.scenario, sc.cfg.n_humans, "train"))
+                    out.append(self.scenario.case(i, "train"))
                     break
                 except UnplaceableCase:
                     i = int(torch.randint(0, CROWDNAV.train_size, (1,), generator=self.gen))
