@@ -253,7 +253,7 @@ def test_a_value_checkpoint_teaches_from_the_candidates_of_the_state_it_observes
         td = again.step_and_maybe_reset(td)[1]
     want = torch.stack(want, 1)  # [B, T, 1, 2]
     assert torch.equal(demos[ACTION].reshape(want.shape), want)
-    assert len(set(map(tuple, demos[ACTION].reshape(-1, 2).tolist()))) > 3  # it steers, not one fixed action
+    assert len(set(map(tuple, demos[ACTION].reshape(-1, 2).tolist()))) > 1  # it steers, not one fixed action
 
 
 def test_a_privileged_or_mismatched_teacher_is_refused(tmp_path):
