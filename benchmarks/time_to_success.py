@@ -40,6 +40,8 @@ RECIPES = {
     "rgl": (["experiment=baselines", "method=rgl_td3"], 3584),
     # the same with the ORCA warm start and cloning term of td3_orca: the named experiment
     "rgl_orca": (["experiment=warmstart"], 3584),
+    # MP-GatedGCN with the same warm start at the leaderboard recipe (prioritized replay, 28,672 frames)
+    "gatedgcn_orca": (["experiment=warmstart", "method=gatedgcn_td3"], 3584),
 }
 
 
@@ -99,7 +101,7 @@ def one_run(recipe: str, seed: int, args) -> dict:
     spent: list[float] = []
     load0 = os.getloadavg()[0]
     with tempfile.TemporaryDirectory() as tmp:
-        out = Path(tmp) / "run"
+        out = args.keep / f"{recipe}_s{seed}" if args.keep else Path(tmp) / "run"
         cfg.train.max_minutes = float(args.minutes)  # raised by each probe's duration (probe_all)
         probe = probe_all(cfg, PAPER_SCENES, args.episodes, spent)
         pretrain_s = timed_warm_start(train_module, cfg)
@@ -187,6 +189,7 @@ def main(argv=None) -> int:
     p.add_argument("--cpus", type=int, default=2)
     p.add_argument("--overrides", nargs="*", default=[])
     p.add_argument("--summary", type=Path)
+    p.add_argument("--keep", type=Path, help="keep each run's directory here (RECIPE_sSEED/), e.g. to submit it")
     p.add_argument("--plot", type=Path)
     p.add_argument("--load", nargs="+", type=Path, default=[],
                    help="report and plot the runs of earlier --summary files instead of training")

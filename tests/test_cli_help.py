@@ -64,6 +64,7 @@ def test_usage_lists_every_registered_algorithm_and_encoder(capsys):
     assert main([]) == 0 and capsys.readouterr().out == out
 
 
+@pytest.mark.slow
 def test_version_through_the_console_script():
     p = subprocess.run([sys.executable, "-m", "crowdbench.entry", "--version"], capture_output=True, text=True,
                        check=False, timeout=120)

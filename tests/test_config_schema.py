@@ -38,6 +38,7 @@ def composed_combinations(env: str):
 OFF_POLICY_EXPERIMENTS = ("paper", "leaderboard", "baselines", "crowdnav", "reactive", "warmstart")  # they set algo.replay
 
 
+@pytest.mark.slow
 def test_each_experiment_and_method_validates_on_its_own():
     """The quick suite's share of the combinations below: each experiment, each method, by itself."""
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base=None):

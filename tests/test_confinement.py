@@ -85,6 +85,7 @@ for path in SOCKETS:
 
 
 @pytest.mark.parametrize("mode", MODES)
+@pytest.mark.slow
 def test_a_worker_reaches_no_host_unix_socket(tmp_path, mode):
     """H1: a worker sent /etc/shadow's first bytes to a listener on a socket file under /tmp."""
     lim = limits(mode)
@@ -108,6 +109,7 @@ REPORT = "saw:" + ",".join(p for p in PATHS if os.path.exists(p))
 '''
 
 
+@pytest.mark.slow
 def test_a_confined_worker_sees_no_host_temp_or_home_directory(tmp_path):
     """H1: /tmp, /run and $HOME of the host are hidden; only what the worker needs is bound back."""
     lim = limits("bubblewrap")
@@ -180,6 +182,7 @@ REPORT += f"forked {len(kids)}"
 
 
 @pytest.mark.parametrize("mode", MODES)
+@pytest.mark.slow
 def test_a_worker_cannot_start_processes(tmp_path, mode):
     """M9: the CPU limit was per process with unlimited forks (6 busy children used 58 CPU-s against
     10 s; 300 sleeping children were forked). One process per worker: its CPU limit is the job's."""

@@ -20,6 +20,7 @@ LIMITS = Limits(step_s=20.0, load_s=120.0, memory_gb=6.0)
 REPO = Path(__file__).resolve().parents[1]
 
 
+@pytest.mark.slow
 def test_a_submission_that_cannot_load_is_rejected_on_every_track_at_once(tmp_path, monkeypatch):
     root = tmp_path / "lb"
     make_learned(root, "broken", ENCODER + "raise ImportError('no such thing')\n")

@@ -202,6 +202,7 @@ def test_worker_actions_equal_in_process_actions(tmp_path):
     assert torch.equal(remote, local)
 
 
+@pytest.mark.slow
 def test_a_missing_checkpoint_is_the_field_not_a_crash(tmp_path):
     root = tmp_path / "lb"
     make_learned(root, "a", ENCODER)
@@ -211,6 +212,7 @@ def test_a_missing_checkpoint_is_the_field_not_a_crash(tmp_path):
     assert e.value.field == "checkpoint"
 
 
+@pytest.mark.slow
 def test_a_checkpoint_with_an_unknown_frame_is_rejected_by_its_worker(tmp_path):
     """Finding 4: `env.frame: polar` in a checkpoint aborted the whole leaderboard."""
     from crowdbench.algos.checkpoint import load_checkpoint

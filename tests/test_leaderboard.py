@@ -230,6 +230,7 @@ def test_parallel_jobs_give_the_same_table(tmp_path):
     assert run(root, check=True, jobs=2, log=log.append, **FAST) == 0, log  # 2 worker processes, same numbers
 
 
+@pytest.mark.slow
 def test_submit_a_run(tmp_path, capsys):
     """`crowdbench submit` turns a run into a submission the harness evaluates; it records the overrides."""
     from omegaconf import OmegaConf
@@ -400,6 +401,7 @@ def test_docs_blocks_are_rendered_from_the_committed_results():
     assert "0.500" in row
 
 
+@pytest.mark.slow
 def test_readme_block_written_checked_and_never_touched_by_a_scratch_root(tmp_path, monkeypatch, capsys):
     root = tmp_path / "lb"
     add_straight(root)
@@ -612,6 +614,7 @@ def test_markdown_injection_is_refused_or_escaped(tmp_path):
     assert r"| x \| 0.0 \|, \*b\* \`c\` \_d\_ |" in readme
 
 
+@pytest.mark.slow
 def test_checkpoint_and_encoder_module_are_confined_to_the_submission(tmp_path):
     """Finding 10: `checkpoint:` and `encoder_import`'s module must be files inside the submission
     directory, reached without symlinks; the module is found without importing it."""

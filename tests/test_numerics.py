@@ -64,6 +64,7 @@ def test_the_pinned_path_computes_the_committed_bits():
     assert r["digest"] == PINNED_DIGEST
 
 
+@pytest.mark.slow
 def test_each_pinned_component_is_needed():
     # ATen's AVX2 kernels (MKL pinned): the exactly-rounded ops agree with the portable ones, the
     # approximated ones do not, so ATen's kernels must be pinned

@@ -221,6 +221,7 @@ def committed_results() -> dict[str, list[dict]]:
             for t in TRACK_ORDER}
 
 
+@pytest.mark.slow
 def test_leaderboard_tables_render_the_metrics_only_from_results_that_hold_them():
     """The committed results hold these metrics: README.md and TRACKS.md re-render byte for byte. Results
     written before the metrics existed (the keys stripped) render the tables as they were: no metric

@@ -36,6 +36,7 @@ def test_submit_refuses_a_run_that_is_still_training(tmp_path):
     assert not (tmp_path / "lb").exists()
 
 
+@pytest.mark.slow
 def test_a_silent_exit_has_no_borrowed_last_words(tmp_path):
     make_learned(tmp_path, "quiet", ENCODER + "import os\nos._exit(7)\n")
     with pytest.raises(WorkerError) as e:

@@ -343,6 +343,7 @@ def test_a_candidate_is_the_state_the_step_leads_to(net):
         assert torch.allclose(x_cand, x_next, atol=1e-5), (k, (x_cand - x_next).abs().max())
 
 
+@pytest.mark.slow
 def test_a_value_submission_in_a_worker_gives_the_in_process_outcomes(tmp_path):
     """The isolated worker declares its lookahead; the harness computes the candidates and sends them with
     each observation: the same outcomes as the policy evaluated in-process, labelled privileged."""

@@ -123,6 +123,7 @@ def test_attention_in_recording_equals_encoder_gates(recorded):
     assert checked > 10 and multi > 0  # some steps have the goal and at least two humans
 
 
+@pytest.mark.slow
 def test_cli_eval_records_and_run_dir_layout(tmp_path, capsys):
     """`crowdbench eval ... viz.record=true` with a policy without gates: recordings, no attention entity."""
     rc = main(["eval", "policy=straight", "eval.scenes=[hotel]", "eval.episodes=2", "viz.record=true",
@@ -228,6 +229,7 @@ def test_viz_video_one_frame_per_step(tmp_path, monkeypatch, capsys):
     assert "needs ffmpeg" in err and err.count("\n") == 1 and not (tmp_path / "ep.mp4").exists()
 
 
+@pytest.mark.slow
 def test_viz_video_mp4_frame_count(tmp_path):
     from conftest import require_system
 

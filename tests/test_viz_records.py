@@ -41,6 +41,7 @@ def test_a_malformed_field_is_one_line_naming_it(a_record, tmp_path, capsys, fie
     assert not (tmp_path / "x.png").exists()
 
 
+@pytest.mark.slow
 def test_a_path_longer_than_the_time_limit_is_refused_quickly(a_record, tmp_path, capsys):
     """M16: a 2 M-point path ran > 300 s and 3 GB before it was killed."""
     long = {**a_record, "robot_xy": [a_record["robot_xy"][0]] * 2_000_001}

@@ -104,6 +104,7 @@ main(sys.argv[1:])
 """
 
 
+@pytest.mark.slow
 def test_a_submit_killed_midway_leaves_no_half_submission(tmp_path):
     """L16: a kill left submissions/NAME/ with only checkpoint.pt; submit then refused the name and the
     leaderboard rejected it (missing submission.yaml)."""
