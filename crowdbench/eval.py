@@ -29,22 +29,37 @@ from crowdbench.envs.protocol import (
     reactive_params,
 )
 from crowdbench.envs.torchrl_env import CrowdEnv
+from crowdbench.metric_table import (
+    ANY,
+    IN_AVERAGE,
+    IN_TRACKS,
+    Z95,
+    Metric,
+    clip,
+    columns,
+    half_width,
+    in_table,
+    of_protocol,
+    within,
+)
 from crowdbench.numerics import describe
 from crowdbench.social_metrics import episode_social_metrics
 
-Z95 = 1.959963984540054
 PERSONAL_SPACE = 0.45  # m, surface gap
 
 
-def mean_ci(x: torch.Tensor) -> dict:
-    """Mean with a normal-approximation 95% interval (``n`` >= 30 in the protocol)."""
+def mean_ci(x: torch.Tensor, bounds: tuple[float, float] = ANY) -> dict:
+    """Mean with a normal-approximation 95% interval (``n`` >= 30 in the protocol) clipped to ``bounds``, the
+    metric's range, and the sample standard deviation ``sd``: the leaderboard's statistics read the
+    standard error from it (:func:`crowdbench.metric_table.spread`), which a clipped interval no longer shows."""
     x = x.double()
     n = x.numel()
     if n == 0:
-        return {"mean": None, "ci95": [None, None], "n": 0}
+        return {"mean": None, "ci95": [None, None], "n": 0, "sd": None}
     m = x.mean().item()
-    h = Z95 * x.std().item() / math.sqrt(n) if n > 1 else 0.0
-    return {"mean": m, "ci95": [m - h, m + h], "n": n}
+    sd = x.std().item() if n > 1 else None
+    h = half_width(sd, n)
+    return {"mean": m, "ci95": list(within(bounds, m - h, m + h)), "n": n, "sd": sd}
 
 
 def rate_ci(k: int, n: int) -> dict:
@@ -56,6 +71,14 @@ def rate_ci(k: int, n: int) -> dict:
     centre = (p + Z95**2 / (2 * n)) / den
     half = Z95 * math.sqrt(p * (1 - p) / n + Z95**2 / (4 * n * n)) / den
     return {"mean": p, "ci95": [max(0.0, centre - half), min(1.0, centre + half)], "n": n}
+
+
+def summarise(metric: Metric, x: torch.Tensor) -> dict:
+    """``metric``'s entry of results.json from its values ``x`` (one per episode, or per agent): a rate
+    with its Wilson interval, or a mean with its normal interval clipped to the metric's range."""
+    if metric.interval == "wilson":
+        return rate_ci(int(x.sum()), x.numel())
+    return mean_ci(x, metric.range)
 
 
 def select_episodes(saved: dict, n: int | None) -> list[dict]:
@@ -197,22 +220,16 @@ def episode_metrics(tr: dict, cfg: SimConfig, gamma: float = 0.99) -> dict[str, 
     return metrics | episode_social_metrics(tr, cfg, success, path, steps * cfg.dt)
 
 
-RENAMED = {"danger_steps": "dangers_per_episode", "personal_space": "personal_space_compliance",
-           "return": "discounted_return", "crowd_offset_max": "crowd_offset_max_m", "crowd_deviation": "crowd_deviation_m",
-           "personal_space_50cm": "personal_space_compliance_50cm", "min_ttc": "min_ttc_s"}
-SOCIAL = ("spl", "stl", "personal_space_50cm", "min_ttc", "path_irregularity", "social_nav_score")
-
-
-def aggregate(m: dict[str, torch.Tensor]) -> dict:
-    n = m["outcome"].numel()
+def aggregate(m: dict[str, torch.Tensor], protocol: str = PROTOCOL_VERSION) -> dict:
+    """Every metric of ``protocol`` in crowdbench/metric_table.py from the per-episode values ``m``, laid
+    out as results.json always was: the rates, then the means over the successful episodes, then those
+    over every episode (failed ones included), each in the table's order."""
+    values = m | {name: m["outcome"] == code for code, name in OUTCOMES.items()}
     ok = m["success"]
-    out = {f"{name}_rate": rate_ci(int((m["outcome"] == code).sum()), n) for code, name in OUTCOMES.items()}
-    out["nav_time_s"] = mean_ci(m["nav_time"][ok])
-    out["path_length_ratio"] = mean_ci(m["path_ratio"][ok])
-    keys = ("danger_steps", "danger_events", "min_clearance", "path_length", "mean_speed", "jerk",
-            "personal_space", "return") + tuple(k for k in ("crowd_offset_max", "crowd_deviation") if k in m)
-    for key in keys + tuple(k for k in SOCIAL if k in m):  # over every episode, failed ones included
-        out[RENAMED.get(key, key)] = mean_ci(m[key].double())
+    out = {}
+    for metric in sorted(of_protocol(protocol), key=lambda x: (x.interval != "wilson", not x.successful_only)):
+        x = values[metric.source or metric.key]
+        out[metric.key] = summarise(metric, x[ok] if metric.successful_only else x)
     return out
 
 
@@ -271,7 +288,7 @@ def evaluate(policy: Policy, scenes=PAPER_SCENES, episodes: int | None = None, o
         reactive = None if humans is None else reactive_params(saved, humans)
         tr = rollout(policy, scene, eps, cfg, recorder, reactive)
         m = episode_metrics(tr, cfg)
-        results["scenes"][scene] = aggregate(m)
+        results["scenes"][scene] = aggregate(m, protocol)
         if save_episodes:
             rows += episode_records(scene, eps, tr, m, cfg, protocol)
         results["sim_config"] = asdict(cfg)
@@ -280,8 +297,7 @@ def evaluate(policy: Policy, scenes=PAPER_SCENES, episodes: int | None = None, o
                                                                if humans == "sfm" else {})}
     paper = [s for s in PAPER_SCENES if s in results["scenes"]]
     if paper:
-        means = {k: [results["scenes"][s][k]["mean"] for s in paper]
-                 for k in ("success_rate", "collision_rate", "timeout_rate", "nav_time_s", "dangers_per_episode")}
+        means = {x.key: [results["scenes"][s][x.key]["mean"] for s in paper] for x in in_table(IN_AVERAGE)}
         # an undefined scene value (no successful episode: no nav time) leaves the average undefined
         results["average_paper_scenes"] = {k: None if None in v else sum(v) / len(v) for k, v in means.items()}
     if out_dir is not None:
@@ -302,16 +318,12 @@ def write_results(out_dir: Path, results: dict, rows: list[dict] | None = None) 
     write_text_atomic(out_dir / "results.json", json.dumps(results, indent=1) + "\n")
 
 
-SOCIAL_COLS = [("spl", "SPL"), ("stl", "STL"), ("personal_space_compliance_50cm", "pers. space 0.5 m"),
-               ("min_ttc_s", "min TTC s"), ("path_irregularity", "irregularity rad/m"), ("social_nav_score", "score")]
-
-
 def format_table(results: dict) -> str:
-    """A plain-text table: one row per scene; then the social-navigation metrics, one row per scene."""
-    cols = [("success_rate", "success"), ("collision_rate", "collision"), ("timeout_rate", "timeout"),
-            ("nav_time_s", "nav time s"), ("dangers_per_episode", "dangers/ep"), ("min_clearance", "min clear m")]
-    if any("crowd_offset_max_m" in r for r in results["scenes"].values()):  # protocol v2
-        cols += [("crowd_offset_max_m", "crowd offset m"), ("crowd_deviation_m", "crowd deviation m")]
+    """A plain-text table, one row per scene, of the metrics of TRACKS.md's columns that the results hold;
+    then, in a second table, the optional ones (the social-navigation metrics): results written before
+    them print the first table as they always did."""
+    shown = columns(IN_TRACKS, [results])
+    cols = [(m.key, m.column) for m in shown if not m.optional]
     w = 24  # fits "10.620 [10.156,11.085]"
     tag = "  [PRIVILEGED: knows the humans' future; an upper bound]" if results.get("privileged") else ""
     tag += f"  humans: reactive {results['humans']}" if "humans" in results else ""
@@ -320,8 +332,9 @@ def format_table(results: dict) -> str:
         a = results["average_paper_scenes"]
         lines.append(f"{'avg (paper)':<13}" + "".join(f"{'n/a' if a[k] is None else f'{a[k]:.3f}':>{w}}"
                                                       for k, _ in cols if k in a))
-    if any("spl" in r for r in results["scenes"].values()):  # results written before these metrics lack them
-        lines += ["", *_table_rows(results, SOCIAL_COLS, w)]
+    later = [(m.key, m.column) for m in shown if m.optional]
+    if later:
+        lines += ["", *_table_rows(results, later, w)]
     return "\n".join(lines)
 
 
@@ -332,7 +345,7 @@ def _table_rows(results: dict, cols: list[tuple[str, str]], w: int) -> list[str]
         for key, _ in cols:
             v = r.get(key)
             cells.append("n/a" if not v or v["mean"] is None else
-                         f"{v['mean']:.3f} [{v['ci95'][0]:.3f},{v['ci95'][1]:.3f}]")
+                         "{:.3f} [{:.3f},{:.3f}]".format(v["mean"], *clip(key, *v["ci95"])))
         lines.append(f"{scene:<13}" + "".join(f"{c:>{w}}" for c in cells))
     return lines
 
@@ -347,8 +360,8 @@ def markdown_table(runs: list[dict], metric: str = "success_rate", digits: int =
         cells = [r["policy"]]
         for s in scenes:
             v = r["scenes"].get(s, {}).get(metric)
-            cells.append("—" if not v or v["mean"] is None else
-                         f"{v['mean']:.{digits}f} [{v['ci95'][0]:.{digits}f}, {v['ci95'][1]:.{digits}f}]")
+            lo, hi = clip(metric, *v["ci95"]) if v and v["mean"] is not None else (None, None)
+            cells.append("—" if lo is None else f"{v['mean']:.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]")
         if paper:
             vals = [r["scenes"][s][metric]["mean"] for s in paper if s in r["scenes"]]
             cells.append(f"{sum(vals) / len(vals):.{digits}f}" if len(vals) == len(paper) and None not in vals else "—")

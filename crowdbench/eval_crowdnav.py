@@ -90,7 +90,7 @@ def evaluate_crowdnav(policy: Policy, cfg: CrowdNavConfig, settings=None, episod
         view = future_view(world, c, eps) if privileged else None
         tr = robot_traces(env, policy, privileged_view=view)
         m = episode_metrics(tr, c)
-        results["scenes"][name] = aggregate(m)
+        results["scenes"][name] = aggregate(m, PROTOCOL)
         if save_episodes:
             rows += episode_rows(name, eps, tr, m, c)
     # orca_backend is how, not what: both solvers give the same numbers (results stay comparable); the

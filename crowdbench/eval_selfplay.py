@@ -29,7 +29,8 @@ from crowdbench.envs.factory import selfplay_world
 from crowdbench.envs.policy import Policy
 from crowdbench.envs.selfplay import SelfPlayConfig, episode_set
 from crowdbench.envs.torchrl_env import CrowdEnv
-from crowdbench.eval import drive, mean_ci, rate_ci, write_results
+from crowdbench.eval import drive, summarise, write_results
+from crowdbench.metric_table import IN_SELFPLAY, in_table, metric
 
 PROTOCOL = "selfplay-v1"
 
@@ -66,26 +67,25 @@ def metrics(tr: dict, cfg: SelfPlayConfig) -> dict:
     path = ((tr["xy"][1:] - tr["xy"][:-1]).norm(dim=-1) * act).sum(0).double()
     ratio = path / (tr["goal"] - tr["start"]).norm(dim=-1).double()
     min_agent = torch.where(act, tr["agent_clearance"].double(), math.inf).amin(0).clamp_max(cfg.sensing_range)
-    n_agents = out.numel()
-    res = {f"{name}_rate": rate_ci(int((out == code).sum()), n_agents) for code, name in OUTCOMES.items()}
-    res |= {
-        "nav_time_s": mean_ci(steps[ok] * cfg.dt),
-        "path_length_ratio": mean_ci(ratio[ok]),
-        "agent_dangers_per_agent": mean_ci(agent_danger.double().flatten()),
-        "dangers_per_agent": mean_ci(danger(tr["clearance"]).double().flatten()),
-        "min_agent_clearance": mean_ci(min_agent.flatten()),
+    per_agent = {f"{name}_rate": out == code for code, name in OUTCOMES.items()} | {
+        "nav_time_s": steps[ok] * cfg.dt,
+        "path_length_ratio": ratio[ok],
+        "agent_dangers_per_agent": agent_danger.double(),
+        "dangers_per_agent": danger(tr["clearance"]).double(),
+        "min_agent_clearance": min_agent,
     }
     all_ok = ok.all(-1)
-    E = out.shape[0]
     ep_time = steps.amax(-1) * cfg.dt
-    res["episode"] = {
-        "all_arrived_rate": rate_ci(int(all_ok.sum()), E),
-        "any_collision_rate": rate_ci(int((out == COLLISION).any(-1).sum()), E),
-        "collisions_per_episode": mean_ci((out == COLLISION).sum(-1).double()),
-        "colliding_pairs_per_episode": mean_ci(tr["pairs"].triu(1).sum((-1, -2)).double()),
-        "agent_dangers_per_episode": mean_ci(agent_danger.sum(-1).double()),
-        "episode_time_s": mean_ci(ep_time[all_ok]),
+    per_episode = {
+        "all_arrived_rate": all_ok,
+        "any_collision_rate": (out == COLLISION).any(-1),
+        "collisions_per_episode": (out == COLLISION).sum(-1).double(),
+        "colliding_pairs_per_episode": tr["pairs"].triu(1).sum((-1, -2)).double(),
+        "agent_dangers_per_episode": agent_danger.sum(-1).double(),
+        "episode_time_s": ep_time[all_ok],
     }
+    res = {k: summarise(metric(k), x.flatten()) for k, x in per_agent.items()}
+    res["episode"] = {k: summarise(metric(k), x.flatten()) for k, x in per_episode.items()}
     return res
 
 
@@ -108,13 +108,12 @@ def evaluate_selfplay(policy: Policy, cfg: SelfPlayConfig, scenarios=("circle", 
 
 
 def format_table(results: dict) -> str:
-    cols = [("success_rate", "success"), ("collision_rate", "collision"), ("timeout_rate", "timeout"),
-            ("nav_time_s", "nav time s"), ("agent_dangers_per_agent", "agent dangers")]
-    ep = [("all_arrived_rate", "all arrived"), ("episode_time_s", "episode s")]
-    head = f"{'setting':<12}" + "".join(f"{name:>15}" for _, name in cols + ep)
+    """The means of the self-play table's metrics (crowdbench/metric_table.py), one row per setting."""
+    cols = in_table(IN_SELFPLAY)
+    head = f"{'setting':<12}" + "".join(f"{m.column:>15}" for m in cols)
     lines = [(f"policy: {results['policy']}  protocol: {results['protocol']} ({results['episodes']} episodes, "
              f"seed {results['seed']}); rates per agent except 'all arrived'"), head]
     for name, r in results["settings"].items():
-        vals = [r[k]["mean"] for k, _ in cols] + [r["episode"][k]["mean"] for k, _ in ep]
+        vals = [(r[m.key] if m.key in r else r["episode"][m.key])["mean"] for m in cols]
         lines.append(f"{name:<12}" + "".join(f"{'n/a' if v is None else f'{v:.3f}':>15}" for v in vals))
     return "\n".join(lines)

@@ -10,7 +10,7 @@ from pathlib import Path
 PACKAGE = Path(__file__).resolve().parents[1] / "crowdbench"
 # module (its first name under crowdbench) -> layer; a module may import its own layer and those below
 LAYERS = {
-    0: ("numerics", "outputs", "config_schema", "config_check", "schema_fields"),
+    0: ("numerics", "outputs", "config_schema", "config_check", "schema_fields", "metric_table"),
     1: ("data",),
     2: ("envs",),
     3: ("models", "baselines"),

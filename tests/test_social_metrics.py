@@ -16,6 +16,7 @@ import torch
 
 from crowdbench.envs.core import COLLISION, SUCCESS, SimConfig
 from crowdbench.eval import aggregate, episode_metrics, format_table, mean_ci
+from crowdbench.metric_table import UNIT, clip, metric_range, spread
 from crowdbench.social_metrics import (
     SCORE_TTC,
     TTC_HORIZON,
@@ -135,8 +136,10 @@ def test_composite_score_hand_values():
     assert score.tolist() == pytest.approx([(1 + 0.5 + 0.25 + 0.75 + 0.5) / 5, 1.0, 0.5 / 5], abs=1e-15)
     agg = aggregate(episode_metrics(traces([polyline((0, 0), (8, 0), step=0.125)] * 3, [(8, 0)] * 3,
                                            [SUCCESS, SUCCESS, COLLISION]), CFG))
-    assert agg["spl"] == mean_ci(f(1, 1, 0)) and agg["stl"] == mean_ci(f(0.5, 0.5, 0))
-    assert agg["social_nav_score"] == mean_ci(f(0.9, 0.9, 0.4)) and agg["min_ttc_s"]["mean"] == TTC_HORIZON
+    assert agg["spl"] == mean_ci(f(1, 1, 0), UNIT) and agg["stl"] == mean_ci(f(0.5, 0.5, 0), UNIT)
+    assert agg["spl"]["ci95"][1] == 1.0  # the normal interval, 2/3 +- 0.653, clipped to the metric's range
+    assert agg["social_nav_score"] == mean_ci(f(0.9, 0.9, 0.4), UNIT) and agg["min_ttc_s"]["mean"] == TTC_HORIZON
+    assert metric_range("min_ttc_s") == (0.0, TTC_HORIZON)
     assert agg["path_irregularity"]["mean"] == 0.0
 
 
@@ -173,6 +176,11 @@ print(json.dumps(out))
 """
 
 
+def as_before(v: dict) -> dict:
+    """An aggregated metric as it was before intervals were clipped: its unclipped interval, no ``sd``."""
+    return {"mean": v["mean"], "ci95": list(spread(v)), "n": v["n"]}
+
+
 def numbers(root: Path) -> dict:
     env = {**os.environ, "PYTHONPATH": str(root), "OMP_NUM_THREADS": "1"}
     out = subprocess.run([sys.executable, "-c", NUMBERS], cwd=root, env=env, capture_output=True, text=True,
@@ -185,7 +193,9 @@ def numbers(root: Path) -> dict:
 def test_protocol_v1_metrics_bit_identical_to_the_code_before():
     """Every key the evaluation had before (per episode, aggregated, in results) keeps its exact value on
     5 hotel episodes of straight and ORCA; the new metrics only add keys. "Before" is what 759d7f7 gave
-    (``BEFORE``; JSON floats round-trip exactly)."""
+    (``BEFORE``; JSON floats round-trip exactly). Since then an interval is clipped to its metric's range
+    (e.g. straight's dangers per episode, 0.2 [-0.192, 0.592]: [0, 0.592]) and a mean carries its ``sd``,
+    from which the unclipped interval is the one from before, bit for bit."""
     before, after = json.loads(BEFORE.read_text()), numbers(REPO)
     new = {"spl", "stl", "personal_space_50cm", "min_ttc", "path_irregularity", "social_nav_score"}
     renamed = {"spl", "stl", "personal_space_compliance_50cm", "min_ttc_s", "path_irregularity", "social_nav_score"}
@@ -194,8 +204,10 @@ def test_protocol_v1_metrics_bit_identical_to_the_code_before():
         assert set(a["episodes"]) - set(b["episodes"]) == new
         assert {k: a["episodes"][k] for k in b["episodes"]} == b["episodes"]
         assert set(a["aggregate"]) - set(b["aggregate"]) == renamed
-        assert {k: a["aggregate"][k] for k in b["aggregate"]} == b["aggregate"]
-        assert {k: a["results"]["hotel"][k] for k in b["results"]["hotel"]} == b["results"]["hotel"]
+        assert {k: as_before(a["aggregate"][k]) for k in b["aggregate"]} == b["aggregate"]
+        assert {k: as_before(a["results"]["hotel"][k]) for k in b["results"]["hotel"]} == b["results"]["hotel"]
+        assert {k: a["aggregate"][k]["ci95"] for k in b["aggregate"]} == \
+            {k: list(clip(k, *v["ci95"])) for k, v in b["aggregate"].items()}
         assert list(a["results"]["hotel"])[: len(b["results"]["hotel"])] == list(b["results"]["hotel"])  # order too
     assert after["straight"]["episodes"]["spl"][1:] == [1.0] * 4  # 4 straight successes
 
@@ -208,8 +220,10 @@ def test_format_table_prints_the_social_metrics_only_when_present():
     new = json.loads(json.dumps(old))
     new["scenes"]["hotel"] |= {"spl": cell, "social_nav_score": cell}
     lines = format_table(new).splitlines()
-    assert lines[:3] == format_table(old).splitlines() and "SPL" in lines[4] and "score" in lines[4]
-    assert lines[5].count("0.500 [0.400,0.600]") == 2 and lines[5].count("n/a") == 4  # missing: n/a
+    assert lines[:3] == format_table(old).splitlines() and lines[4].split() == ["scene", "SPL", "score"]
+    assert lines[5].count("0.500 [0.400,0.600]") == 2 and "n/a" not in lines[5]  # the metrics the results hold
+    new["scenes"]["eth"] = {"spl": cell}
+    assert format_table(new).splitlines()[-1].split()[1:] == ["0.500", "[0.400,0.600]", "n/a"]  # missing: n/a
 
 
 # -------------------------------------------------------------- leaderboard tables
@@ -229,9 +243,9 @@ def test_leaderboard_tables_render_the_metrics_only_from_results_that_hold_them(
     import copy
 
     from crowdbench.envs.protocol import EVAL_SCENES
-    from crowdbench.leaderboard.metrics import SOCIAL
     from crowdbench.leaderboard.render import render_docs_block, render_readme
     from crowdbench.leaderboard.track_tables import render_tracks, trained_on
+    from crowdbench.metric_table import METRICS
 
     by_track, scenes = committed_results(), list(EVAL_SCENES)
     v1 = [r for r in by_track["v1"] if trained_on(r) in (None, "v1")]
@@ -240,15 +254,16 @@ def test_leaderboard_tables_render_the_metrics_only_from_results_that_hold_them(
     from crowdbench.leaderboard.board import unevaluated
 
     assert render_tracks(by_track, scenes, None, unevaluated(REPO / "leaderboard", by_track), []) == tracks
-    titles = [title for _, title, _, _ in SOCIAL]
+    social = [m for m in METRICS if m.optional]
+    titles = [m.title for m in social]
     assert all(f"## {t}\n" in readme for t in titles)
 
     def strip(results):
         out = copy.deepcopy(results)
         for r in out:
             for sc in r["scenes"].values():
-                for key, *_ in SOCIAL:
-                    sc.pop(key, None)
+                for m in social:
+                    sc.pop(m.key, None)
         return out
 
     old = render_readme(strip(v1), [], scenes, None, [])

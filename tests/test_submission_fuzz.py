@@ -20,11 +20,11 @@ import yaml
 from crowdbench import policies
 from crowdbench.envs.protocol import EVAL_SCENES
 from crowdbench.leaderboard import SubmissionError, read_submission
-from crowdbench.leaderboard.metrics import SOCIAL
-from crowdbench.leaderboard.render import BASELINE_METRICS, METRICS, group_results, render_readme
+from crowdbench.leaderboard.render import group_results, render_readme
 from crowdbench.leaderboard.text import md
-from crowdbench.leaderboard.track_tables import CROWD, SUMMARY, render_tracks
+from crowdbench.leaderboard.track_tables import render_tracks
 from crowdbench.leaderboard.tracks import TRACK_ORDER, TRACKS
+from crowdbench.metric_table import IN_DOCS, IN_README, IN_TRACKS, in_table
 
 SEED = 20261201
 N_RANDOM = 250
@@ -198,7 +198,7 @@ def cases() -> list[tuple[str, bytes | None]]:
 
 def fake_result(sub) -> dict:
     """A results.json of ``sub`` (every metric 0.5 on every scene and CrowdNav setting)."""
-    metrics = {m for m, *_ in METRICS + BASELINE_METRICS + SUMMARY + CROWD + SOCIAL}
+    metrics = {m.key for table in (IN_README, IN_DOCS, IN_TRACKS) for m in in_table(table)}
     cell = {"mean": 0.5, "ci95": [0.4, 0.6], "n": 10}
     units = [*EVAL_SCENES, *(t.setting for t in TRACKS.values() if t.setting)]
     res = {"meta": {"submission": sub.name, "kind": sub.kind, "entry": sub.entry}, "submission": sub.data,

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 from crowdbench.envs.protocol import EVAL_SCENES, PAPER_SCENES, PROTOCOL_VERSION
 from crowdbench.leaderboard.entries import model_of
-from crowdbench.leaderboard.metrics import sections
 from crowdbench.leaderboard.schema import KINDS, link_problem
 from crowdbench.leaderboard.stats import (  # noqa: F401 - the cells' functions, as render.* for the renderers
     average_cell,
@@ -20,6 +19,7 @@ from crowdbench.leaderboard.stats import (  # noqa: F401 - the cells' functions,
     seeds_cell,
 )
 from crowdbench.leaderboard.text import diff_rows, md  # noqa: F401 - diff_rows: render.diff_rows for --check
+from crowdbench.metric_table import IN_DOCS, IN_README, V1, Metric, columns
 
 
 def markers(name: str) -> tuple[str, str]:
@@ -64,13 +64,9 @@ def group_results(results: list[dict]) -> list[list[dict]]:
     return sorted(groups.values(), key=lambda g: (order[g[0]["meta"]["kind"]], g[0]["meta"]["entry"].lower()))
 
 
-METRICS = [
-    ("success_rate", "Success rate (Tables III / IV)", 3),
-    ("nav_time_s", "Navigation time, s, successful episodes (Tables III / IV)", 2),
-    ("dangers_per_episode", "Dangers per episode, steps with 0 <= d < 0.2 m (Table V)", 3),
-    ("collision_rate", "Collision rate", 3),
-    ("timeout_rate", "Timeout rate", 3),
-]
+def readme_sections(results: list[dict]) -> list[Metric]:
+    """The metrics of leaderboard/README.md's sections: those of the paper's tables (III / IV, V) first."""
+    return sorted(columns(IN_README, results, V1), key=lambda m: m.paper_title is None)
 
 
 AVG = "AVG (paper scenes)"
@@ -138,8 +134,8 @@ def render_readme(results: list[dict], rejected: list[str], scenes: list[str], e
     L += ["", RANKING, "", ("The **oracle** is PRIVILEGED: it knows every replayed human's future and plans with the "
           "simulator's own collision test. It is an upper bound on what is achievable, not a navigation policy. "
           "How to submit: [docs/submitting.md](../docs/submitting.md)."), "", "![leaderboard](leaderboard.png)", ""]
-    for metric, title, digits in METRICS + sections(results):  # the social metrics only if some result has them
-        L += [f"## {title}", "", *metric_table(groups, scenes, metric, digits), ""]
+    for m in readme_sections(results):
+        L += [f"## {m.paper_title or m.title}", "", *metric_table(groups, scenes, m.key, m.digits), ""]
     oracle = [r for g in groups for r in g if r["meta"]["kind"] == "oracle"]
     if oracle:
         u = oracle[0]["unavoidable"]
@@ -253,18 +249,6 @@ def _subset_note(scenes: list[str], episodes: int | None) -> list[str]:
     return [f"**UNOFFICIAL subset**: {min(episodes or 250, 250)} episodes per scene, scenes {', '.join(scenes)}.", ""]
 
 
-BASELINE_METRICS = [
-    ("success_rate", "Success rate", 3),
-    ("collision_rate", "Collision rate", 3),
-    ("timeout_rate", "Timeout rate", 3),
-    ("nav_time_s", "Navigation time (s, successful episodes)", 2),
-    ("dangers_per_episode", "Dangers per episode (steps with 0 <= d < 0.2 m)", 3),
-    ("min_clearance", "Minimum clearance (m)", 3),
-    ("path_length_ratio", "Path length ratio (successful)", 3),
-    ("jerk", "Jerk (m/s^3)", 2),
-]
-
-
 def summary_table(groups: list[list[dict]]) -> list[str]:
     """Every entry, ranked by average success over the paper scenes: seeds, that success and dangers per
     episode, mean [95% interval] (of a run or over seeds)."""
@@ -300,8 +284,8 @@ def render_docs_block(results: list[dict], scenes: list[str], episodes: int | No
           f"({', '.join(md(r['meta']['submission']) for r in baselines)}): {episodes or 250} episodes per scene, "
           "mean [95% interval] (Wilson for rates, normal approximation for means); the last column is the "
           "mean over the paper scenes.")]
-    for metric, title, digits in BASELINE_METRICS + sections(baselines):
-        L += ["", f"### {title}", "", *baseline_table(baselines, scenes, metric, digits)]
+    for m in columns(IN_DOCS, baselines, V1):
+        L += ["", f"### {m.title}", "", *baseline_table(baselines, scenes, m.key, m.digits)]
     return "\n\n" + "\n".join(L) + "\n\n"
 
 

@@ -24,10 +24,7 @@ import yaml
 
 from crowdbench.envs.protocol import EVAL_SCENES, PROTOCOL_VERSION
 from crowdbench.leaderboard.entries import model_of
-from crowdbench.leaderboard.metrics import columns
 from crowdbench.leaderboard.render import (
-    BASELINE_METRICS,
-    METRICS,
     group_results,
     label,
     table_cell,
@@ -37,13 +34,11 @@ from crowdbench.leaderboard.sandbox import DEFAULT_LIMITS, Limits
 from crowdbench.leaderboard.schema import SCHEMA, link_problem
 from crowdbench.leaderboard.site_media import SCENE, entry_media
 from crowdbench.leaderboard.stats import ranked
-from crowdbench.leaderboard.track_tables import CROWD, SUMMARY, group_cell, trained_on
+from crowdbench.leaderboard.track_tables import group_cell, trained_on
 from crowdbench.leaderboard.tracks import TRACK_ORDER, TRACKS, units
+from crowdbench.metric_table import IN_TRACKS, columns, metric, ordered
 
 ASSETS = Path(__file__).with_name("site_assets")
-# metric -> (title, digits): the tables' own titles and digits; other metrics of results.json: 3 digits
-TITLES = {m: (t, d) for m, t, d in [*BASELINE_METRICS, *CROWD]}
-TITLES.update({m: (TITLES.get(m, (t, d))[0], d) for m, t, d in METRICS})
 OPEN = ("success_rate",)  # unfolded per-scene tables (every track's summary table comes first)
 
 
@@ -52,14 +47,15 @@ def e(x) -> str:
     return html.escape(str(x), quote=True)
 
 
-def metric_info(metric: str) -> tuple[str, int]:
-    return TITLES.get(metric, (metric.replace("_", " "), 3))
+def metric_info(key: str) -> tuple[str, int]:
+    """A metric's title and digits (crowdbench/metric_table.py; a key not in the table: itself, 3 digits)."""
+    m = metric(key)
+    return (key.replace("_", " "), 3) if m is None else (m.title, m.digits)
 
 
 def metrics_of(results: list[dict]) -> list[str]:
-    """Every per-scene metric the results hold: the tables' metrics first, then the others by name."""
-    found = {m for r in results for v in r["scenes"].values() for m in v}
-    return [m for m in TITLES if m in found] + sorted(found - set(TITLES))
+    """Every per-scene metric the results hold, in the metric table's order."""
+    return ordered({m for r in results for v in r["scenes"].values() for m in v})
 
 
 def page(title: str, body: list[str], depth: int = 0) -> str:
@@ -131,9 +127,10 @@ class Site:
     def summary_table(self, name: str, order: list) -> list[str]:
         """The track's ranking: its headline figures, success first (the rows of TRACKS.md's table)."""
         track, home = TRACKS[name], [r for g in (g for _, g in order) for r in g]
-        cols = SUMMARY + (CROWD if track.protocol == "v2" else []) + columns(home)
-        rows = [self.entry_cells(rank, g) + [td(*group_cell(g, track, m, d)) for m, _, d in cols] for rank, g in order]
-        head = [("#", True), ("method", False), ("trained on", False), ("seeds", True), *((c, True) for _, c, _ in cols)]
+        cols = columns(IN_TRACKS, home, track.protocol)
+        rows = [self.entry_cells(rank, g) + [td(*group_cell(g, track, m.key, m.digits)) for m in cols]
+                for rank, g in order]
+        head = [("#", True), ("method", False), ("trained on", False), ("seeds", True), *((m.column, True) for m in cols)]
         return ['<div class="scroll">', *table(head, rows, cls="sortable ranked summary", tid=f"{name}.summary"), "</div>"]
 
     def track_section(self, name: str) -> list[str]:
@@ -148,13 +145,13 @@ class Site:
               "trained on this track. Each cell: mean [95% interval] of a run, or over several seeds of one entry "
               "(two-level bootstrap; n in the <em>seeds</em> column). Click a column header to sort.</p>"),
              *self.summary_table(name, order), *self.plot(name), "<p>Per scene, every metric (same ranking):</p>"]
-        for metric in metrics_of(results):
-            title, digits = metric_info(metric)
-            rows = [self.entry_cells(rank, g) + [td(*table_cell(g, c, metric, digits)) for c in cols]
+        for shown in metrics_of(results):
+            title, digits = metric_info(shown)
+            rows = [self.entry_cells(rank, g) + [td(*table_cell(g, c, shown, digits)) for c in cols]
                     for rank, g in order]
             head = [("#", True), ("method", False), ("trained on", False), ("seeds", True), *((c, True) for c in cols)]
-            L += [f'<details{" open" if metric in OPEN else ""}>', f"<summary>{e(title)}</summary>",
-                  *table(head, rows, cls="sortable ranked", tid=f"{name}.{metric}"), "</details>"]
+            L += [f'<details{" open" if shown in OPEN else ""}>', f"<summary>{e(title)}</summary>",
+                  *table(head, rows, cls="sortable ranked", tid=f"{name}.{shown}"), "</details>"]
         return [*L, "</section>"]
 
     def transfer_section(self) -> list[str]:

@@ -1,15 +1,15 @@
-"""The statistics of the generated tables: each metric's range (intervals are clipped to it), a table
-cell's mean and 95% interval (a run's Wilson / normal interval from its results.json; the paper-scene
-average; several training seeds: a two-level bootstrap over seeds, then each seed's episodes), and the
-ranking of the entries by the headline metric.
+"""The statistics of the generated tables: a table cell's mean and 95% interval (a run's Wilson / normal
+interval from its results.json; the paper-scene average; several training seeds: a two-level bootstrap
+over seeds, then each seed's episodes), and the ranking of the entries by the headline metric.
 
 Several seeds: ``B`` times, draw the seeds with replacement, and for each drawn seed a value of each of its
 scenes from that scene's own sampling distribution (a rate: a binomial count of its ``n`` episodes; a mean:
-normal with the standard error its 95% interval implies); the interval is the 2.5 and 97.5 percentiles of
-the means. It holds both the seed-to-seed and the episode-to-episode variation (a plain bootstrap over 3
+normal with its standard error, :func:`~crowdbench.metric_table.spread`); the interval is the 2.5 and 97.5
+percentiles of the means. It holds both the seed-to-seed and the episode-to-episode variation (a plain bootstrap over 3
 seeds has 10 distinct resamples and ignores the episodes). The draws come from numpy's legacy
 ``RandomState(0)``, whose streams numpy keeps fixed across versions: a fresh render equals the committed
-tables on any machine (``crowdbench leaderboard --check``).
+tables on any machine (``crowdbench leaderboard --check``). Every interval is clipped to its metric's range
+(crowdbench/metric_table.py).
 """
 
 from __future__ import annotations
@@ -20,35 +20,18 @@ import numpy as np
 
 from crowdbench.envs.protocol import PAPER_SCENES
 from crowdbench.eval import rate_ci
+from crowdbench.metric_table import Z95, clip, is_rate, spread
 
 BOOTSTRAP = 2000  # resamples per cell
 SEED = 0
-# metric -> (low, high) of its values; a metric not listed is unbounded (e.g. min_clearance: negative on contact)
-UNIT = ("success_rate", "collision_rate", "timeout_rate", "spl", "stl", "personal_space_compliance",
-        "personal_space_compliance_50cm", "social_nav_score")
-NON_NEGATIVE = ("nav_time_s", "dangers_per_episode", "danger_events", "jerk", "mean_speed", "path_length",
-                "path_length_ratio", "path_irregularity", "crowd_offset_max_m", "crowd_deviation_m")
-RANGES = {**{m: (0.0, 1.0) for m in UNIT}, **{m: (0.0, math.inf) for m in NON_NEGATIVE}, "min_ttc_s": (0.0, 10.0)}
-
-
-def metric_range(metric: str) -> tuple[float, float]:
-    if metric.endswith("_rate"):
-        return 0.0, 1.0
-    return RANGES.get(metric, (-math.inf, math.inf))
-
-
-def clip(metric: str, lo: float, hi: float) -> tuple[float, float]:
-    """An interval within ``metric``'s range (a normal approximation can leave it: a count below 0)."""
-    a, b = metric_range(metric)
-    return min(max(lo, a), b), min(max(hi, a), b)
 
 
 def _draws(v: dict, metric: str, rs: np.random.RandomState) -> np.ndarray:
     """``BOOTSTRAP`` draws of one run's value on one scene from its sampling distribution."""
-    if metric.endswith("_rate") and v.get("n"):
+    if is_rate(metric) and v.get("n"):
         return rs.binomial(int(v["n"]), min(max(float(v["mean"]), 0.0), 1.0), BOOTSTRAP) / int(v["n"])
-    lo, hi = v.get("ci95") or (None, None)
-    se = (hi - lo) / (2 * 1.959963984540054) if lo is not None and hi is not None else 0.0
+    lo, hi = spread(v)
+    se = (hi - lo) / (2 * Z95) if lo is not None and hi is not None else 0.0
     return float(v["mean"]) + se * rs.standard_normal(BOOTSTRAP)
 
 
@@ -69,7 +52,7 @@ def fmt(v, digits: int) -> str:
 
 
 def interval(mean: float, lo: float, hi: float, metric: str, digits: int) -> str:
-    """``mean [lo, hi]`` with the interval clipped to the metric's range (stats.RANGES)."""
+    """``mean [lo, hi]`` with the interval clipped to the metric's range (crowdbench/metric_table.py)."""
     lo, hi = clip(metric, lo, hi)
     return f"{mean:.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"
 
@@ -88,11 +71,11 @@ def average_stat(r: dict, metric: str) -> tuple[float | None, list]:
     if any(v is None or v["mean"] is None for v in vals):
         return None, [None, None]
     mean = sum(v["mean"] for v in vals) / len(vals)
-    if metric.endswith("_rate"):
+    if is_rate(metric):
         n = sum(v["n"] for v in vals)
         k = round(sum(v["mean"] * v["n"] for v in vals))
         return mean, rate_ci(k, n)["ci95"] if len({v["n"] for v in vals}) == 1 else [None, None]
-    half = math.sqrt(sum(((v["ci95"][1] - v["ci95"][0]) / 2) ** 2 for v in vals)) / len(vals)
+    half = math.sqrt(sum(((hi - lo) / 2) ** 2 for lo, hi in map(spread, vals))) / len(vals)
     return mean, [mean - half, mean + half]
 
 

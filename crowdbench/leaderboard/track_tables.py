@@ -5,7 +5,6 @@ the results; each table sits between ``generated:track-<name>`` (``generated:tra
 from __future__ import annotations
 
 from crowdbench.envs.protocol import PAPER_SCENES
-from crowdbench.leaderboard.metrics import columns
 from crowdbench.leaderboard.render import (
     average_cell,
     fmt,
@@ -19,11 +18,7 @@ from crowdbench.leaderboard.render import (
 from crowdbench.leaderboard.stats import ranked
 from crowdbench.leaderboard.text import md
 from crowdbench.leaderboard.tracks import TRACK_ORDER, TRACKS, Track
-
-SUMMARY = [("success_rate", "success", 3), ("collision_rate", "collision", 3), ("timeout_rate", "timeout", 3),
-           ("nav_time_s", "nav time s", 2), ("dangers_per_episode", "dangers/ep", 3),
-           ("min_clearance", "min clearance m", 3)]
-CROWD = [("crowd_offset_max_m", "crowd offset m", 3), ("crowd_deviation_m", "crowd deviation m", 3)]
+from crowdbench.metric_table import IN_TRACKS, columns
 
 
 def trained_on(r: dict) -> str | None:
@@ -80,19 +75,19 @@ def track_table(track: Track, results: list[dict], scenes: list[str]) -> list[st
     """Baselines, the oracle (where it applies) and the entries trained on ``track``."""
     home = [r for r in results if trained_on(r) in (None, track.name)]
     groups = group_results(home)
-    cols = SUMMARY + (CROWD if track.protocol == "v2" else []) + columns(home)  # social: if some result has them
+    cols = columns(IN_TRACKS, home, track.protocol)
     where = "average over the four paper scenes" if track.replay else f"CrowdNav's test cases of {track.setting}"
     L = [f"## `{track.name}`: {track.title}", "",
          f"Ranked (#) by success, the first column. Each cell: {where}; mean [95% interval] of a run, or over "
          "several seeds (two-level bootstrap: seeds, then episodes)."
          + ("" if track.privileged_ok else " The oracle does not apply: these humans react to the robot, so "
             "their future is not known in advance."), "", f"![{track.name}, ranked](plots/{track.name}.png)", ""]
-    head = ["#", "method", "trained on", "seeds", *(c[1] for c in cols)]
+    head = ["#", "method", "trained on", "seeds", *(m.column for m in cols)]
     L += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for rank, g in ranked(groups, lambda g: group_cell(g, track, "success_rate", 3)[0]):
         origin = trained_on(g[0]) or "—"
         cells = [str(rank or "—"), label(g), md(origin), str(len(g))]
-        L.append("| " + " | ".join(cells + [group_cell(g, track, m, d)[1] for m, _, d in cols]) + " |")
+        L.append("| " + " | ".join(cells + [group_cell(g, track, m.key, m.digits)[1] for m in cols]) + " |")
     if track.replay and len(scenes) > 1:
         L += ["", "Success rate per scene:", "", *metric_table(groups, scenes, "success_rate", 3)]
     return L
