@@ -56,7 +56,9 @@ def test_a_failure_while_loading_leaves_no_worker_running(tmp_path, monkeypatch)
     monkeypatch.setattr(wire, "recv", deep)
     with pytest.raises(RecursionError):
         WorkerPolicy(root / "submissions" / "a", "a", LIMITS)
-    assert len(procs) == 1 and procs[0].poll() is not None
+    # bubblewrap's one-off usability probe may come first, depending on which test ran before in this process
+    workers = [p for p in procs if "crowdbench.leaderboard.worker" in " ".join(map(str, p.args))]
+    assert len(workers) == 1 and all(p.poll() is not None for p in procs), procs
 
 
 def test_a_huge_checkpoint_is_refused_before_it_is_read(tmp_path):
