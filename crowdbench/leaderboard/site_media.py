@@ -64,8 +64,8 @@ def make_media(media: Path, sub_dir: Path, fp: str, n: int, scene: str = SCENE,
     from crowdbench.leaderboard.harness import build_policy
     from crowdbench.leaderboard.schema import read_submission
     from crowdbench.leaderboard.tracks import TRACKS
-    from crowdbench.viz.records import load_rows
     from crowdbench.viz.record import SceneRecorder
+    from crowdbench.viz.records import load_rows
     from crowdbench.viz.video import episode_video
 
     shutil.rmtree(media, ignore_errors=True)
