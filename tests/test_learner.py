@@ -65,3 +65,44 @@ def test_per_weights_train_and_need_per(tmp_path):
         assert stats["updates"] > 0
     with pytest.raises(ValueError, match="per_weights=true needs algo.replay=prioritized"):
         component("td3")(compose([*SMALL, "algo.per_weights=true", "algo.replay=uniform"]), 1)
+
+
+@pytest.mark.parametrize("per_weights", [False, True])
+def test_td3_actor_term_equals_torchrls_with_critic_1_alone(per_weights):
+    """``FirstCriticTD3Loss.actor_loss`` (critic 1 only) against TorchRL's ``TD3Loss.actor_loss`` (both
+    critics vmapped, ``[0]`` kept) on the default recipe's gatedgcn lookahead critic: the same loss and the
+    same actor gradients, and no gradient reaches the critics."""
+    from torchrl.objectives import TD3Loss
+
+    from crowdbench.algos.actors import leaf_action_spec
+    from crowdbench.models.heads import prepare_batch
+
+    over = ["encoder=gatedgcn", "encoder.dim=16", "env.batch=8", "algo.batch_size=16", "algo.replay=prioritized"]
+    cfg = compose(over + (["algo.per_weights=true"] if per_weights else []))
+    sample = sampled_batch(cfg)
+    torch.manual_seed(0)
+    learner = component("td3")(cfg, 1)
+    mine = learner.loss
+    prepare_batch(sample, *learner.encoders)
+    if per_weights:  # shaped as OffPolicyAlgorithm.update hands them to the losses
+        sample.set("priority_weight", sample["priority_weight"].reshape(-1, 1))
+    reference = TD3Loss(mine.actor_network, mine.qvalue_network, action_spec=leaf_action_spec(1, learner.v_max),
+                        num_qvalue_nets=2, use_prioritized_weights=per_weights)
+    reference.load_state_dict(mine.state_dict(), strict=False)  # (no value estimator: the actor term needs none)
+    reference.set_keys(**{k: getattr(mine.tensor_keys, k) for k in ("action", "state_action_value", "priority_weight")})
+
+    grads = []
+    for loss in (mine, reference):
+        for p in loss.parameters():
+            p.grad = None
+        value, meta = loss.actor_loss(sample.clone())
+        value.backward()
+        grads.append([None if p.grad is None else p.grad.clone() for p in loss.actor_network_params.values(True, True)])
+        assert all(p.grad is None or not p.grad.any() for p in loss.qvalue_network_params.values(True, True))
+        if loss is mine:
+            ours, q1 = value.detach(), meta["state_action_value_actor"]
+    torch.testing.assert_close(ours, value.detach(), rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(q1, meta["state_action_value_actor"][0], rtol=1e-5, atol=1e-6)
+    assert sum(g is not None for g in grads[0]) > 0
+    for a, b in zip(*grads, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-6)

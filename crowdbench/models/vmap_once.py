@@ -11,7 +11,8 @@ critic's graph construction was about a quarter of a gatedgcn update.
 Bits: the forward values are the same (the ops act per row; both copies are identical). In the
 backward, ``expand`` sums the copies' gradients *before* the preprocessing's backward instead of
 after it. That is exact when at most one copy's gradient is nonzero per row, which holds for the
-losses here: TD3's actor term reads critic 1 only (critic 2's gradient is exactly zero), SAC's
+losses here: TorchRL's TD3 actor term reads critic 1 only (critic 2's gradient is exactly zero;
+crowdbench's TD3 runs critic 1 alone there, algos/td3.py), SAC's
 reads ``min(Q1, Q2)`` (one copy per row), the critic terms take no gradient of the observation
 or the action (tested: ``tests/test_vmap_once.py``). Anything else (nested transforms, inputs that
 differ between copies) takes the ordinary vmapped path.
