@@ -36,6 +36,11 @@ class Algorithm:
         self.updates = 0  # gradient steps so far (checkpointed by the loop)
         self.generator = torch.Generator().manual_seed(int(cfg.seed))  # minibatch / replay sampling
 
+    @classmethod
+    def env_transforms(cls, cfg: DictConfig) -> tuple:
+        """TorchRL transforms the training env needs for this algorithm (a centralised critic's state)."""
+        return ()
+
     # ---- collection
     def collection_policy(self):
         """What the collector runs: the actor with exploration (deterministic actors) or itself."""

@@ -78,12 +78,12 @@ class PPO(Algorithm):
     config = PPOConfig
     actor_kind = "tanh_normal"
     resume_fields = ("loss", "opt", "replay_rng")
+    keep = tuple(KEEP)  # what a minibatch reads
 
     def __init__(self, cfg, n_agents: int):
         super().__init__(cfg, n_agents)
         a = self.a
-        critic = TensorDictModule(ValueNet(make_encoder(**OmegaConf.to_container(cfg.encoder))),
-                                  in_keys=list(OBS_KEYS), out_keys=[VALUE])
+        critic = self.make_critic(cfg)
         self.loss = loss = ClipPPOLoss(
             self.actor, critic, clip_epsilon=a.clip_epsilon, entropy_bonus=a.entropy_coef > 0,
             entropy_coeff=a.entropy_coef, critic_coeff=a.critic_coef, loss_critic_type=a.loss_critic_type,
@@ -94,6 +94,11 @@ class PPO(Algorithm):
         self.params = list(loss.parameters())
         self.opt = torch.optim.Adam(self.params, lr=a.lr)
 
+    def make_critic(self, cfg) -> TensorDictModule:
+        """``V(s)`` of each agent on its own observation (decentralised: IPPO with shared weights)."""
+        return TensorDictModule(ValueNet(make_encoder(**OmegaConf.to_container(cfg.encoder))),
+                                in_keys=list(OBS_KEYS), out_keys=[VALUE])
+
     def expected_updates(self, frames: int) -> int:
         fpb = self.cfg.train.frames_per_batch
         per_batch = self.a.epochs * math.ceil(fpb * self.n_agents / self.a.minibatch_size)
@@ -103,7 +108,7 @@ class PPO(Algorithm):
         a = self.a
         with torch.no_grad():  # advantages and value targets over the batch's time dimension, per agent
             self.loss.value_estimator(batch)
-        flat = agent_transitions(batch, KEEP)  # [N] transitions, one agent each, frozen steps dropped
+        flat = agent_transitions(batch, self.keep)  # [N] transitions, one agent each, frozen steps dropped
         sums: dict[str, float] = {}
         steps = 0
         for _ in range(a.epochs):

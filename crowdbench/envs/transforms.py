@@ -84,3 +84,43 @@ class HumanDropout(Transform):
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         return self._hide(next_tensordict)
+
+
+SCENE = (GROUP, "state", "scene")
+SCENE_MASK = (GROUP, "state", "scene_mask")
+
+
+class SceneView(Transform):
+    """Adds each agent's view of the whole scene (:meth:`~crowdbench.envs.world.World.scene_view`) under
+    ``("agents", "state")``: what a centralised critic reads (``algo=mappo``) and no policy does.
+
+    A transform rather than an env option: only a training env with a centralised critic pays for it,
+    and evaluation (the bare env) can never hand it to a policy."""
+
+    def __init__(self):
+        super().__init__(in_keys=[], out_keys=[])
+
+    def _world(self):
+        return self.parent.base_env.world
+
+    def _add(self, td: TensorDictBase) -> TensorDictBase:
+        view = self._world().scene_view()
+        td.set(SCENE, view["scene"])
+        td.set(SCENE_MASK, view["scene_mask"])
+        return td
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        return self._add(tensordict_reset)
+
+    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
+        return self._add(next_tensordict)
+
+    def transform_observation_spec(self, observation_spec):
+        from torchrl.data import Categorical, Composite, Unbounded
+
+        w = self._world()
+        B, A, N = w.B, w.A, w.M
+        observation_spec[GROUP].set("state", Composite(scene=Unbounded((B, A, N, 7)),
+                                                       scene_mask=Categorical(2, (B, A, N), dtype=torch.bool),
+                                                       shape=(B, A)))
+        return observation_spec

@@ -237,3 +237,32 @@ class World:
         origin = pos if frame == "world" else torch.zeros_like(pos)
         robot = torch.cat((origin, own.reshape(B, A, 4)), -1)
         return {"robot": robot, "humans": humans, "humans_mask": seen}
+
+    def scene_view(self) -> dict[str, torch.Tensor]:
+        """Each agent's view of the whole scene, for a centralised critic (``algo=mappo``): every body,
+        with no sensing range, and the other agents' goals, which no agent observes.
+
+        - ``scene`` ``[B, A, N, 7]``: ``[px, py, vx, vy, gx, gy, is_agent]`` of every slot in the agent's
+          frame (``env.frame``), position and goal relative to the agent; ``N`` = the observation's slots
+          (the ``A`` agents first in self-play, then the humans); a human's goal is zero (unknown);
+        - ``scene_mask`` ``[B, A, N]``: the slot is a body in the scene (not the agent itself).
+        """
+        frame = self.cfg.frame
+        A = self.A
+        opos, ovel, ovalid = self.humans()
+        ogoal, kind = torch.zeros_like(opos), torch.zeros_like(opos[..., 0])
+        if self.interact:
+            opos, ovel = torch.cat((self.pos, opos), 1), torch.cat((self.vel, ovel), 1)
+            ogoal, kind = torch.cat((self.goal, ogoal), 1), torch.cat((torch.ones_like(self.pos[..., 0]), kind), 1)
+            ovalid = torch.cat((self.present(), ovalid), 1)
+        mask = ovalid.unsqueeze(1).expand(-1, A, -1).clone()
+        if self.interact:
+            mask[:, :, :A] &= ~self.eye
+        origin = self.pos.unsqueeze(2) if frame != "world" else torch.zeros_like(self.pos).unsqueeze(2)
+        rel = opos.unsqueeze(1) - origin
+        goal = (ogoal.unsqueeze(1) - origin) * kind[:, None, :, None]
+        vel = ovel.unsqueeze(1).expand_as(rel)
+        if frame == "rotate":
+            rel, vel, goal = (to_local(x, self.heading) for x in (rel, vel, goal))
+        feats = torch.cat((rel, vel, goal, kind[:, None, :, None].expand(*rel.shape[:-1], 1)), -1)
+        return {"scene": feats * mask.unsqueeze(-1), "scene_mask": mask}
