@@ -1,6 +1,12 @@
 """Self-play throughput: env-steps/s (and agent-steps/s) at n = 8 and 32 agents, B = 256.
 
 Usage: python benchmarks/bench_selfplay.py [--threads 2] [--seconds 3] [--batch 256]
+       python benchmarks/bench_selfplay.py --scale [--batch 64]   # 32, 64, 128 agents, every slot vs 16 nearest
+
+``--scale``: each configuration in its own process, reporting env-steps/s of the TorchRL env with the shared
+gatedgcn actor and the process's peak resident memory; circle crossing on a circle of radius n / 8 m (the
+agents must fit), ``env.obs_slots`` = 0 (every agent and human is a slot: the view grows as n^2) or 16 (the
+16 nearest bodies: linear in n).
 
 An env-step advances one environment (all its n agents) by one step; agent-steps = env-steps x n.
 Every figure includes one ``observe`` per ``step`` (each agent's view of the other agents and
@@ -11,6 +17,9 @@ resets included); "+ actor" adds the shared-weight MP-GatedGCN (D = 32) deciding
 from __future__ import annotations
 
 import argparse
+import resource
+import subprocess
+import sys
 import time
 
 import torch
@@ -65,15 +74,44 @@ def torchrl_rate(cfg: SelfPlayConfig, batch: int, seconds: float, actor=None) ->
     return n * batch / dt
 
 
+def gatedgcn():
+    return build_actor("td3", {"name": "gatedgcn", "dim": 32, "layers": 2, "k": 8}, 1.0)
+
+
+def one_scale(n: int, slots: int, batch: int, seconds: float) -> None:
+    cfg = SelfPlayConfig(n_agents=n, circle_radius=max(4.0, n / 8), obs_slots=slots)
+    r = torchrl_rate(cfg, batch, seconds, gatedgcn())
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(f"| {n} | {slots or 'all (' + str(n - 1) + ')'} | {r:,.0f} | {r * n:,.0f} | {rss:,.0f} |", flush=True)
+
+
+def scale(args) -> None:
+    print(f"torch {torch.__version__}, threads {args.threads}, B = {args.batch}, circle crossing, TorchRL env + "
+          "shared gatedgcn (D=32) actor")
+    print("| n agents | slots per agent | env-steps/s | agent-steps/s | peak RSS (MB) |")
+    print("|---|---|---|---|---|")
+    for n in (32, 64, 128):
+        for slots in (0, 16):
+            subprocess.run([sys.executable, __file__, "--one", f"{n},{slots}", "--batch", str(args.batch),
+                            "--threads", str(args.threads), "--seconds", str(args.seconds)], check=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--seconds", type=float, default=3.0)
     ap.add_argument("--batch", type=int, default=256)
+    ap.add_argument("--scale", action="store_true")
+    ap.add_argument("--one", default="", help=argparse.SUPPRESS)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
+    if args.one:
+        n, slots = map(int, args.one.split(","))
+        return one_scale(n, slots, args.batch, args.seconds)
+    if args.scale:
+        return scale(args)
     B = args.batch
-    actor = build_actor("td3", {"name": "gatedgcn", "dim": 32, "layers": 2, "k": 8}, 1.0)
+    actor = gatedgcn()
     print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, B = {B}, circle crossing")
     print("| path | n agents | background | env-steps/s | agent-steps/s | ms per step call |")
     print("|---|---|---|---|---|---|")

@@ -43,6 +43,9 @@ class SelfPlayConfig(SimConfig):
     humans: str = "orca"  # their model: orca | sfm
     robot_visible: bool = True  # whether they see (and avoid) the learning agents
     human_v_pref: float = 1.0  # m/s
+    # each agent observes its obs_slots nearest bodies (0 = every slot): the observation, and the graph an
+    # encoder builds from it, stay linear in the number of agents (World.observe)
+    obs_slots: int = 0
 
     def __post_init__(self):
         super().__post_init__()
@@ -66,6 +69,8 @@ class SelfPlayConfig(SimConfig):
             raise ValueError(f"min_spacing must exceed two robot radii ({2 * self.robot_radius} m)")
         if self.n_humans < 0:
             raise ValueError(f"env.n_humans must be >= 0, got {self.n_humans}")
+        if self.obs_slots < 0:
+            raise ValueError(f"env.obs_slots must be >= 0, got {self.obs_slots}")
         if self.n_humans:
             from crowdbench.envs.humans.reactive import CROWDS
 

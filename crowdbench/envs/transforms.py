@@ -119,7 +119,7 @@ class SceneView(Transform):
         from torchrl.data import Categorical, Composite, Unbounded
 
         w = self._world()
-        B, A, N = w.B, w.A, w.M
+        B, A, N = w.B, w.A, w.M_all
         observation_spec[GROUP].set("state", Composite(scene=Unbounded((B, A, N, 7)),
                                                        scene_mask=Categorical(2, (B, A, N), dtype=torch.bool),
                                                        shape=(B, A)))

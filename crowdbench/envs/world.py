@@ -65,6 +65,9 @@ class World:
         self.B, self.A, self.Mh = batch, n_agents, crowd.M
         self.interact, self.done_agents = interact, done_agents
         self.M = (n_agents if interact else 0) + crowd.M  # observed slots per agent
+        # the nearest obs_slots bodies only (self-play's env.obs_slots; 0: every slot)
+        self.slots = min(int(getattr(cfg, "obs_slots", 0) or self.M), self.M)
+        self.M_all, self.M = self.M, self.slots
         B, A = batch, n_agents
         self.steps = torch.zeros(B, dtype=torch.long)
         self.pos = torch.zeros(B, A, 2)
@@ -215,7 +218,7 @@ class World:
         value is computed per environment, so they are the same bits as the full batch's rows.
         """
         frame = frame or self.cfg.frame
-        A, S = self.A, self.M
+        A, S = self.A, self.M_all
         pick = (lambda x: x) if rows is None else (lambda x: x[rows])
         opos, ovel, ovalid = (pick(x) for x in self.humans())
         pos, vel, goal, heading = pick(self.pos), pick(self.vel), pick(self.goal), pick(self.heading)
@@ -236,7 +239,16 @@ class World:
         humans = torch.cat((rel, hvel), -1) * seen.unsqueeze(-1)
         origin = pos if frame == "world" else torch.zeros_like(pos)
         robot = torch.cat((origin, own.reshape(B, A, 4)), -1)
+        if self.M < self.M_all:
+            humans, seen = self._nearest(humans, seen, frame, rel if frame != "world" else rel - pos.unsqueeze(2))
         return {"robot": robot, "humans": humans, "humans_mask": seen}
+
+    def _nearest(self, humans, seen, frame: str, rel):
+        """The ``M`` nearest seen slots of every agent's view, nearest first (unseen ones last, zero)."""
+        d2 = (rel * rel).sum(-1).masked_fill(~seen, float("inf"))
+        idx = d2.topk(self.M, dim=-1, largest=False, sorted=True).indices  # [B, A, M]
+        keep = seen.gather(-1, idx)
+        return humans.gather(-2, idx.unsqueeze(-1).expand(*idx.shape, 4)) * keep.unsqueeze(-1), keep
 
     def scene_view(self) -> dict[str, torch.Tensor]:
         """Each agent's view of the whole scene, for a centralised critic (``algo=mappo``): every body,
