@@ -68,7 +68,7 @@ def test_a_registered_algorithm_is_picked_up_by_the_cli(tmp_path, capsys):
 
 
 def test_unknown_algorithms_and_keys_are_one_line_errors(tmp_path, capsys):
-    with pytest.raises(ValueError, match="^unknown algo 'dqn'; valid: td3, ddpg, sac, ppo, ippo, mappo, value$"):
+    with pytest.raises(ValueError, match="^unknown algo 'dqn'; valid: td3, ddpg, sac, ppo, matd3, ippo, mappo, value$"):
         entry("dqn")
     assert main(["run", "algo=dqn", f"out={tmp_path / 'a'}"]) == 2
     err = capsys.readouterr().err
@@ -80,7 +80,7 @@ def test_unknown_algorithms_and_keys_are_one_line_errors(tmp_path, capsys):
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
 
 
-@pytest.mark.parametrize("algo", ["td3", "ddpg", "sac", "ppo", "mappo"])
+@pytest.mark.parametrize("algo", ["td3", "ddpg", "sac", "ppo", "mappo", "matd3"])
 def test_every_algorithm_resumes_where_it_stopped(algo, tmp_path):
     """Two halves with a resume in between give the uninterrupted run's frames, updates and log rows."""
     extra = PPO if algo in ("ppo", "mappo") else OFF_POLICY

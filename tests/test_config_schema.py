@@ -105,7 +105,7 @@ def test_schemas_are_in_hydras_config_store():
 
     repo = ConfigStore.instance().repo["schema"]
     assert {"root.yaml", "env", "algo", "encoder", "train"} <= set(repo)
-    assert set(repo["algo"]) == {"td3.yaml", "ddpg.yaml", "sac.yaml", "ppo.yaml", "ippo.yaml", "mappo.yaml", "value.yaml"}
+    assert set(repo["algo"]) == {"td3.yaml", "ddpg.yaml", "sac.yaml", "ppo.yaml", "matd3.yaml", "ippo.yaml", "mappo.yaml", "value.yaml"}
     node = ConfigStore.instance().load("schema/algo/sac.yaml").node
     assert OmegaConf.get_type(node).__name__ == "SACConfig" and node.alpha_init == 0.005
     root = OmegaConf.to_container(OmegaConf.structured(RootConfig))

@@ -131,6 +131,7 @@ class OffPolicyAlgorithm(Algorithm):
     resume_fields = ("loss", "opt_actor", "opt_critic", "replay_rng")
     policy_delay = 1
     prepared = True  # the loss reads graphs built once per sampled batch (models/heads.py prepare_batch)
+    keep = tuple(KEEP)  # what the replay buffer holds of each transition
 
     def __init__(self, cfg, n_agents: int):
         super().__init__(cfg, n_agents)
@@ -145,12 +146,14 @@ class OffPolicyAlgorithm(Algorithm):
         if horizon > 0 and cfg.env.frame == "world":
             raise ValueError(f"algo.critic_lookahead needs a robot-relative env.frame (rotate or translate); "
                              f"got {horizon} with frame {cfg.env.frame}")
-        critic = critic_module(Critic(make_encoder(**OmegaConf.to_container(cfg.encoder)), None, horizon,
-                                      self.v_max))
+        critic = self.make_critic(cfg, horizon)
         actor = self.actor
+        # TorchRL's losses hand the target critic what they selected of the next state for the target actor:
+        # a critic that reads more than the actor's prepared graphs needs it listed among the actor's inputs
+        carry = [k for k in critic.in_keys if k != ACTION] if self.critic_reads_raw(horizon) else []
         if self.prepared:  # ``self.actor`` stays the raw-observation module for acting
-            actor = actor_module(self.actor.module, prepared=True, carry_raw=horizon > 0)
-            critic_in = critic_module(critic.module, prepared=True)
+            actor = actor_module(self.actor.module, prepared=True, carry=carry)
+            critic_in = critic if self.critic_reads_raw(horizon) else critic_module(critic.module, prepared=True)
         else:
             critic_in = critic
         # the buffer holds one agent per transition (self-play flattens agents into the batch: algos/multiagent.py)
@@ -162,10 +165,11 @@ class OffPolicyAlgorithm(Algorithm):
         # n-step transitions (algos/nstep.py) carry their length m: the bootstrap is discounted by gamma^m
         loss.value_estimator.set_keys(steps_to_next_obs=STEPS)
         # graphs built once per sampled batch, for the networks that read them (a lookahead critic builds its own)
-        self.encoders = ((self.actor.module.encoder,) + (() if horizon > 0 else (critic.module.encoder,))
+        self.encoders = ((self.actor.module.encoder,) + (() if self.critic_reads_raw(horizon) else
+                                                         (critic.module.encoder,))
                          if self.prepared else ())
-        # a lookahead critic reads no prepared graph: a critic-only step needs the next observation's only
-        self.root_every_step = horizon == 0
+        # a critic that reads no prepared graph: a critic-only step needs the next observation's only
+        self.root_every_step = not self.critic_reads_raw(horizon)
         self.target_updater = SoftUpdate(loss, tau=a.tau)
         # fused Adam: one kernel for all parameters (~5x cheaper steps for many small tensors on CPU)
         self.opt_actor = torch.optim.Adam(params_of(loss.actor_network_params), lr=a.lr_actor, fused=True)
@@ -180,6 +184,16 @@ class OffPolicyAlgorithm(Algorithm):
     # ---- what a subclass provides
     def make_loss(self, actor, critic, action_spec):
         raise NotImplementedError
+
+    def make_critic(self, cfg, horizon: float):
+        """``Q(s, a)`` as a TensorDictModule on the raw observation: the run's encoder (a lookahead critic
+        if ``horizon > 0``; models/heads.py)."""
+        return critic_module(Critic(make_encoder(**OmegaConf.to_container(cfg.encoder)), None, horizon, self.v_max))
+
+    def critic_reads_raw(self, horizon: float) -> bool:
+        """The critic reads its inputs as they were collected, not graphs prepared once per batch (its
+        graph depends on the action: the lookahead critic)."""
+        return horizon > 0
 
     def extra_keys(self) -> dict:
         return {"action": ACTION}
@@ -227,7 +241,7 @@ class OffPolicyAlgorithm(Algorithm):
         a = self.a
         if a.n_steps > 1:
             batch = n_step(batch, a.n_steps, a.gamma)
-        self.rb.extend(agent_transitions(batch, KEEP + [STEPS] * (a.n_steps > 1)))
+        self.rb.extend(agent_transitions(batch, [*self.keep, *[STEPS] * (a.n_steps > 1)]))
         logs: dict[str, float] = {}
         if len(self.rb) >= a.warmup:
             for _ in range(max(1, int(self.cfg.train.utd * batch.numel()))):
@@ -245,7 +259,7 @@ class OffPolicyAlgorithm(Algorithm):
         critic = (self.critic_network(), self.critic_params(), STATE_ACTION_VALUE)
         logs = imitate(self.cfg, self.actor, self.actor_kind, demos, [critic], prepare)
         sync_targets(self.loss)
-        self.rb.extend(demos.select(*KEEP, *[STEPS] * (self.a.n_steps > 1)))
+        self.rb.extend(demos.select(*self.keep, *[STEPS] * (self.a.n_steps > 1)))
         if self.cloning is not None:  # the cloning term keeps what its minibatches read
             self.cloning = DemoCloning(self.cfg, demos)
         return logs

@@ -102,8 +102,8 @@ def collect_demonstrations(cfg, env, frames: int, expert=None) -> TensorDict:
     batch.set(COMPLETE, complete)
     batch.set(EPISODE, episode_ids(nxt["done"]))
     keep = [*TRANSITION, RETURN, COMPLETE, EPISODE]
-    if (GROUP, "state") in batch.keys(include_nested=True):  # a centralised critic's inputs (algo=mappo)
-        keep.append((GROUP, "state"))
+    if (GROUP, "state") in batch.keys(include_nested=True):  # a centralised critic's inputs (mappo, matd3)
+        keep += [(GROUP, "state"), ("next", GROUP, "state")]
     n = int(cfg.algo.get("n_steps", 1))
     if n > 1:
         batch = n_step(batch, n, gamma)

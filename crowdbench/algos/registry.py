@@ -34,6 +34,7 @@ BUILTIN = {
     "ddpg": AlgorithmEntry("ddpg", "deterministic", "crowdbench.algos.ddpg"),
     "sac": AlgorithmEntry("sac", "tanh_normal", "crowdbench.algos.sac"),
     "ppo": AlgorithmEntry("ppo", "tanh_normal", "crowdbench.algos.ppo"),
+    "matd3": AlgorithmEntry("matd3", "deterministic", "crowdbench.algos.matd3"),
     "ippo": AlgorithmEntry("ippo", "tanh_normal", "crowdbench.algos.ippo"),
     "mappo": AlgorithmEntry("mappo", "tanh_normal", "crowdbench.algos.mappo"),
     "value": AlgorithmEntry("value", "value", "crowdbench.algos.value"),

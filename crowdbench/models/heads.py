@@ -230,7 +230,7 @@ class _Prepared(nn.Module):
         if self.with_action:
             *tensors, action = tensors
             return self.head.forward_prepared(dict(zip(self.fields, tensors, strict=True)), action)
-        # extra trailing inputs (carry_raw) are not the head's
+        # extra trailing inputs (actor_module's carry) are not the head's
         return self.head.forward_prepared(dict(zip(self.fields, tensors[: len(self.fields)], strict=True)))
 
 
@@ -242,19 +242,18 @@ def prepared_keys(encoder: nn.Module) -> list[tuple]:
     return [OBS + (encoder.prep_key, f) for f in encoder.prep_fields]
 
 
-def actor_module(actor: Actor, prepared: bool = False, carry_raw: bool = False) -> TensorDictModule:
+def actor_module(actor: Actor, prepared: bool = False, carry: list | tuple = ()) -> TensorDictModule:
     """``TensorDictModule``: ``("agents", "observation", *)`` -> ``("agents", "action")``.
 
     ``prepared=True`` reads :func:`prepare_batch`'s keys instead (same parameters).
-    ``carry_raw=True`` also lists the raw observation as (unused) inputs: TorchRL's losses
-    select the actor's ``in_keys`` from the next state before calling the target critic,
-    which a lookahead critic needs as raw observation."""
+    ``carry`` keys are listed as (unused) inputs too: TorchRL's losses select the actor's ``in_keys``
+    from the next state before calling the target critic, which a lookahead critic needs as raw
+    observation (and a centralised critic as the scene)."""
     if prepared:
         fields = prep_fields(actor.encoder)
         mod = _Prepared(actor, fields, False)
         keys = prepared_keys(actor.encoder)
-        if carry_raw and keys != list(OBS_KEYS):
-            keys = keys + list(OBS_KEYS)
+        keys = keys + [k for k in carry if k not in keys]
         return TensorDictModule(mod, in_keys=keys, out_keys=[ACTION])
     return TensorDictModule(actor, in_keys=list(OBS_KEYS), out_keys=[ACTION])
 

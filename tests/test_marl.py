@@ -1,5 +1,6 @@
-"""MAPPO's centralised critic and IPPO (crowdbench/algos/mappo.py, ippo.py): the scene view against hand
-geometry, the scene critic against a loop, GAE per agent with its own episode cuts against a loop."""
+"""The multi-agent algorithms (crowdbench/algos/mappo.py, ippo.py, matd3.py): the scene view against hand
+geometry, the scene critics against loops, MAPPO's GAE per agent with its own episode cuts and MATD3's
+target against loops."""
 
 import math
 
@@ -15,7 +16,7 @@ from crowdbench.envs.factory import make_env, selfplay_world
 from crowdbench.envs.policy import GROUP, OBS
 from crowdbench.envs.selfplay import SelfPlayConfig
 from crowdbench.envs.transforms import SCENE, SCENE_MASK, SceneView
-from crowdbench.models.scene_critic import SceneCritic
+from crowdbench.models.scene_critic import SceneCritic, SceneQ
 
 
 def three_agents(frame: str = "rotate"):
@@ -57,20 +58,22 @@ def test_scene_view_transform_passes_torchrls_spec_check():
 
 
 @torch.no_grad()
-def loop_critic(net: SceneCritic, robot, scene, mask) -> float:
-    """One agent's value with a Python loop over the bodies (the module docstring's equations)."""
+def loop_critic(net: SceneCritic, robot, scene, mask, action=None) -> float:
+    """One agent's value with a Python loop over the bodies (the module docstring's equations); with
+    ``action``, SceneQ's action value."""
+    tail = () if action is None else (action,)
     hs = []
     for e in range(scene.shape[0]):
         if mask[e]:
             x = torch.cat((robot, scene[e], scene[e, :2].norm().reshape(1)))
             hs.append(torch.relu(net.pair(x)))
     if not hs:
-        return float(net.value(torch.cat((robot, torch.zeros(net.dim)))))
+        return float(net.value(torch.cat((robot, torch.zeros(net.dim), *tail))))
     mean = sum(hs) / len(hs)
     scores = torch.stack([net.score(torch.cat((h, mean))).squeeze() for h in hs])
     w = [math.exp(float(s - scores.max())) for s in scores]
     pooled = sum(wi / sum(w) * h for wi, h in zip(w, hs, strict=True))
-    return float(net.value(torch.cat((robot, pooled))))
+    return float(net.value(torch.cat((robot, pooled, *tail))))
 
 
 def test_scene_critic_equals_a_loop_over_the_bodies():
@@ -85,6 +88,9 @@ def test_scene_critic_equals_a_loop_over_the_bodies():
     scene2 = scene.clone()
     scene2[~mask] = 99.0  # masked slots are not read
     torch.testing.assert_close(net(robot, scene2, mask).squeeze(-1), got)
+    q, action = SceneQ(dim=8, hidden=[16]), torch.randn(5, 2)
+    want = torch.tensor([loop_critic(q, robot[i], scene[i], mask[i], action[i]) for i in range(5)])
+    torch.testing.assert_close(q(robot, scene, mask, action).squeeze(-1), want, rtol=1e-5, atol=1e-6)
 
 
 @pytest.mark.parametrize("algo", ["mappo", "ippo"])
@@ -129,3 +135,40 @@ def test_mappo_critic_reads_the_scene_and_ippo_the_observation():
     assert set(mappo.loss.critic_network.in_keys) == {OBS + ("robot",), SCENE, SCENE_MASK}
     assert all(k[:2] == OBS for k in ippo.loss.critic_network.in_keys)
     assert component("ippo").env_transforms(None) == ()
+
+
+def test_matd3_target_equals_a_loop_over_the_transitions():
+    """MATD3's critic target ``r + gamma (1 - terminated) min_j Q'_j(s', pi'(s'))`` (no smoothing noise) against
+    the target networks called one transition at a time; the replay buffer holds both scene views."""
+    from crowdbench.algos.multiagent import agent_transitions
+    from crowdbench.models.heads import prepare_batch
+
+    cfg = compose(["algo=matd3", "env=selfplay", "env.batch=4", "env.n_agents=3", "env.circle_radius=0.7",
+                   "encoder=mlp", "encoder.dim=16", "encoder.hidden=[16]", "algo.policy_noise=0.0",
+                   "algo.batch_size=32", "algo.gamma=0.9", "algo.critic_dim=8", "algo.critic_hidden=[16]"])
+    Algo = component("matd3")
+    torch.manual_seed(0)
+    env = make_env(cfg, extra=Algo.env_transforms(cfg))
+    learner = Algo(cfg, env.n_agents)
+    learner.rb.extend(agent_transitions(env.rollout(20, break_when_any_done=False), list(learner.keep)))
+    sample = learner.rb.sample()
+    assert ("next", GROUP, "state", "scene") in sample.keys(True)
+    prepare_batch(sample, *learner.encoders)
+    _, meta = learner.loss.value_loss(sample.clone())
+    loss = learner.loss
+    actor, q = loss.actor_network, loss.qvalue_network
+    want = []
+    with torch.no_grad():
+        for i in range(len(sample)):
+            nxt = sample[i : i + 1]["next"].clone()
+            with loss.target_actor_network_params.to_module(actor):
+                a = actor(nxt.clone())[GROUP, "action"].clamp(-1.0, 1.0)
+            qs = []
+            for j in range(2):
+                with loss.target_qvalue_network_params[j].to_module(q):
+                    td = nxt.clone()
+                    td[GROUP, "action"] = a
+                    qs.append(float(q(td)[GROUP, "state_action_value"]))
+            r, term = float(sample[i]["next", GROUP, "reward"]), float(sample[i]["next", GROUP, "terminated"])
+            want.append(r + 0.9 * (1 - term) * min(qs))
+    torch.testing.assert_close(meta["target_value"].flatten(), torch.tensor(want), rtol=1e-4, atol=1e-5)
