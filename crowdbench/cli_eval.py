@@ -242,6 +242,20 @@ def check_protocol_fixed(cfg) -> None:
                              "evaluation always uses the protocol's value")
 
 
+def check_selfplay_eval(cfg, frame: str = "rotate") -> None:
+    """Every ``env.eval_scenarios`` x ``env.eval_n_agents`` setting can be placed: checked before training, so
+    that e.g. 32 agents on the default 8 m square fail at once, not after a 30-minute run."""
+    from crowdbench.envs.factory import selfplay_config
+    from crowdbench.eval_selfplay import settings
+
+    e = cfg.env
+    try:
+        settings(selfplay_config(e, frame=frame), list(e.eval_scenarios),
+                 None if e.eval_n_agents is None else list(e.eval_n_agents))
+    except ValueError as err:
+        raise UsageError(f"env.eval_n_agents / env.eval_scenarios: {err}") from None
+
+
 def run_selfplay_eval(policy, cfg, out: Path, overrides: list[str]) -> dict:
     """``env=selfplay``: every agent acts from ``policy`` on the seeded self-play set (docs/selfplay.md)."""
     from crowdbench.envs.factory import selfplay_config

@@ -9,6 +9,7 @@ from crowdbench.cli_eval import (
     Interrupted,
     UsageError,
     check_config,
+    check_selfplay_eval,
     check_viz,
     claimed_output,
     eval_options,
@@ -46,6 +47,10 @@ def run_one(cfg, overrides: list[str]) -> dict:
                 if not (out / "resume.pt").is_file():
                     raise Interrupted(f"interrupted during the imitation phase; nothing to resume in {out}") from None
                 raise Interrupted(f"interrupted; resume with: {resume_command(overrides, out)}") from None
+    from crowdbench.envs.factory import env_name
+
+    if env_name(cfg.env) == "selfplay":
+        check_selfplay_eval(cfg)
     out = output_dir(cfg, "run", f"{cfg.algo.name}-{cfg.encoder.name}")
     try:
         probe = make_probe(cfg)
@@ -61,8 +66,6 @@ def run_one(cfg, overrides: list[str]) -> dict:
             policy = policy_from_checkpoint(out / "checkpoint.pt")
         except ValueError as e:  # CheckpointError included: bad checkpoint, bad algo/replay/logger value
             raise UsageError(str(e)) from None
-        from crowdbench.envs.factory import env_name
-
         name = env_name(cfg.env)
         if name == "replay":  # trained with other env.reactive values: evaluated on protocol v2's (the probe too)
             return run_eval(policy, cfg, out, overrides, strict=False)

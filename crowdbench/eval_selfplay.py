@@ -89,19 +89,23 @@ def metrics(tr: dict, cfg: SelfPlayConfig) -> dict:
     return res
 
 
+def settings(cfg: SelfPlayConfig, scenarios=("circle", "square"), n_agents=None) -> dict[str, SelfPlayConfig]:
+    """Each evaluated scenario x agent count's config; one that cannot be placed is a ValueError naming it."""
+    counts = [cfg.n_agents] if n_agents is None else [int(n) for n in n_agents]
+    return {f"{scenario}_n{n}": SelfPlayConfig(**{**asdict(cfg), "scenario": scenario, "n_agents": n})
+            for scenario in scenarios for n in counts}
+
+
 def evaluate_selfplay(policy: Policy, cfg: SelfPlayConfig, scenarios=("circle", "square"), n_agents=None,
                       episodes: int = 100, seed: int = 0, out_dir: Path | None = None, meta: dict | None = None) -> dict:
     """Evaluate ``policy`` on the seeded self-play set of every scenario x agent count; optionally write results."""
-    counts = [cfg.n_agents] if n_agents is None else [int(n) for n in n_agents]
     results = {"protocol": PROTOCOL, "policy": policy.name, "meta": meta or {}, "episodes": episodes,
                "seed": seed, "settings": {}}
-    for scenario in scenarios:
-        for n in counts:
-            c = SelfPlayConfig(**{**asdict(cfg), "scenario": scenario, "n_agents": n})
-            eps = episode_set(c, episodes, seed)
-            tr = rollout(policy, c, eps)
-            results["settings"][f"{scenario}_n{n}"] = metrics(tr, c)
-            results["sim_config"] = {k: v for k, v in asdict(c).items() if k not in ("scenario", "n_agents")}
+    for name, c in settings(cfg, scenarios, n_agents).items():
+        eps = episode_set(c, episodes, seed)
+        tr = rollout(policy, c, eps)
+        results["settings"][name] = metrics(tr, c)
+        results["sim_config"] = {k: v for k, v in asdict(c).items() if k not in ("scenario", "n_agents")}
     if out_dir is not None:
         write_results(Path(out_dir), results)  # atomic: a failed write leaves no half results.json
     return results

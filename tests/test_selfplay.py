@@ -250,6 +250,13 @@ def test_bad_selfplay_settings_are_one_line_errors(capsys, tmp_path):
     assert "raise env.circle_radius" in capsys.readouterr().err
     assert main(["eval", "env=selfplay", "policy=oracle", f"out={tmp_path}"]) == 2
     assert "not available with env=selfplay" in capsys.readouterr().err
+    # 24 agents 0.8 m apart need 19.2 m of the 8 m square's 16 m of start sides: refused before training,
+    # and nothing is written
+    run = tmp_path / "run"
+    assert main(["run", "env=selfplay", "env.eval_n_agents=[4,24]", f"out={run}"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("crowdbench: error: env.eval_n_agents / env.eval_scenarios: 24 agents 0.8 m apart")
+    assert "raise env.square_width" in err and err.count("\n") == 1 and not run.exists()
 
 
 def _square_testing_all(n, cfg, gen, tries=500):
