@@ -167,3 +167,23 @@ def test_every_committed_method_has_its_own_colour():
     colours = colour_map(results)
     assert len(colours) > 20 and len(set(colours.values())) == len(colours)
     assert all((BOARD / "plots" / f"{t}.png").is_file() for t in TRACK_ORDER)
+
+
+def test_track_plot_places_each_entry_at_its_dangers_and_success():
+    import matplotlib.pyplot as plt
+
+    from crowdbench.leaderboard.plots import _tradeoff
+
+    success = [("1. a", 0.9, 0.8, 1.0, (1, 0, 0)), ("2. b", 0.5, 0.4, 0.6, (0, 1, 0)),
+               ("3. c", None, None, None, (0, 0, 1))]
+    dangers = [("1. a", 0.2, 0.1, 0.3, (1, 0, 0)), ("2. b", 3.0, 2.0, 4.5, (0, 1, 0)),
+               ("3. c", 1.0, 0.5, 1.5, (0, 0, 1))]
+    fig, ax = plt.subplots()
+    _tradeoff(ax, success, dangers)
+    points = [tuple(line.get_xydata()[0]) for line in ax.lines if line.get_marker() == "o"]
+    assert points == [(0.2, 0.9), (3.0, 0.5)]  # an entry without a success figure is not drawn
+    assert [t.get_text() for t in ax.texts] == ["1", "2"]
+    caps = sorted(round(float(x), 6) for line in ax.lines if line.get_marker() != "o"
+                  for x in line.get_xdata())
+    assert 2.0 in caps and 4.5 in caps  # b's dangers interval
+    plt.close(fig)

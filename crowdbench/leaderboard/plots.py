@@ -1,7 +1,7 @@
 """The leaderboard's ranked plots: ``leaderboard/leaderboard.png`` (protocol v1: success and dangers per
 episode averaged over the paper scenes) and ``leaderboard/plots/<track>.png`` (each track's headline
-success). One horizontal bar per entry, in the tables' rank order (best at the top), with its 95%
-interval as the tables compute it (:func:`~.render.group_stat`); each method has its own colour,
+success, and success against dangers per episode). One horizontal bar (or point) per entry, in the tables'
+rank order (best at the top), with its 95% interval as the tables compute it (:func:`~.render.group_stat`); each method has its own colour,
 the same in every plot (:func:`colour_map` over every entry shown, no colour recycled)."""
 
 from __future__ import annotations
@@ -81,16 +81,39 @@ def v1_plot(results: list[dict], scenes: list[str], out: Path, colours: dict | N
     _save(fig, out)
 
 
+def _tradeoff(ax, success: list[tuple], dangers: list[tuple]) -> None:
+    """Success against dangers per episode, one point per entry (its rank number) with both intervals: the
+    safest successful entries sit top left."""
+    for rank, (s, d) in enumerate(zip(success, dangers, strict=True), 1):
+        if s[1] is None or d[1] is None:
+            continue
+        xerr = [[max(d[1] - d[2], 0.0)], [max(d[3] - d[1], 0.0)]] if d[2] is not None else None
+        yerr = [[max(s[1] - s[2], 0.0)], [max(s[3] - s[1], 0.0)]] if s[2] is not None else None
+        ax.errorbar(d[1], s[1], xerr=xerr, yerr=yerr, fmt="o", color=s[4], ms=4, elinewidth=0.8, capsize=1.5)
+        ax.annotate(str(rank), (d[1], s[1]), textcoords="offset points", xytext=(3, 3), fontsize=6.5)
+    ax.set_xlabel("dangers per episode (steps with 0 <= d < 0.2 m)", fontsize=8)
+    ax.set_ylabel("success", fontsize=8)
+    ax.set_ylim(-0.03, 1.05)
+    ax.set_xlim(left=0)
+    ax.tick_params(labelsize=7)
+    ax.grid(alpha=0.3)
+    ax.set_title("success against dangers (95% intervals)", fontsize=9)
+
+
 def track_plot(track, results: list[dict], out: Path, colours: dict | None = None) -> None:
-    """Track ``track``'s ranked success (the entries of its table), to ``out``."""
+    """Track ``track``'s ranked success (the entries of its table) and each entry's success against its
+    dangers per episode, to ``out``."""
     from crowdbench.leaderboard.track_tables import group_cell, headline_scenes, trained_on
 
     groups = group_results([r for r in results if trained_on(r) in (None, track.name)])
     colours = colours or colour_map(results)
     order = ranked(groups, lambda g: group_cell(g, track, "success_rate", 3)[0])
     rows = _rows(order, lambda g: headline_scenes(g[0], track), "success_rate", colours)
-    fig, ax = plt.subplots(figsize=(6.5, 0.24 * len(groups) + 1.1))
+    dangers = _rows(order, lambda g: headline_scenes(g[0], track), "dangers_per_episode", colours)
+    fig, (ax, tr) = plt.subplots(1, 2, figsize=(11, max(0.24 * len(groups) + 1.1, 3.2)),
+                                 gridspec_kw={"width_ratios": (3, 2)})
     where = "average over the paper scenes" if track.replay else f"CrowdNav {track.setting}"
     _bars(ax, rows, f"{track.name}: {track.title}\nsuccess, {where}, ranked", "success (95% interval)", (0, 1.08))
+    _tradeoff(tr, rows, dangers)
     fig.tight_layout()
     _save(fig, out)
