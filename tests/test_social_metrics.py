@@ -15,8 +15,8 @@ import pytest
 import torch
 
 from crowdbench.envs.core import COLLISION, SUCCESS, SimConfig
-from crowdbench.eval import aggregate, episode_metrics, format_table, mean_ci
 from crowdbench.metric_table import UNIT, clip, metric_range, spread
+from crowdbench.protocols.engine import aggregate, episode_metrics, format_table, mean_ci
 from crowdbench.social_metrics import (
     SCORE_TTC,
     TTC_HORIZON,
@@ -163,7 +163,8 @@ BEFORE = REPO / "tests" / "data" / "protocol_v1_hotel5_before_social_metrics.jso
 NUMBERS = """
 import json
 from crowdbench.envs.protocol import PROTOCOL_VERSION, ProtocolSpec, load_episodes
-from crowdbench.eval import aggregate, episode_metrics, evaluate, rollout, select_episodes, sim_config_for
+from crowdbench.protocols.engine import aggregate, episode_metrics, select_episodes
+from crowdbench.protocols.replay import evaluate, rollout, sim_config_for
 from crowdbench.policies import build
 out = {}
 saved = load_episodes("hotel")
@@ -286,8 +287,8 @@ def test_leaderboard_tables_render_the_metrics_only_from_results_that_hold_them(
 def test_crowdnav_and_protocol_v2_results_hold_the_metrics():
     from crowdbench.baselines.straight import StraightToGoal
     from crowdbench.envs.crowdnav import CrowdNavConfig
-    from crowdbench.eval import evaluate
-    from crowdbench.eval_crowdnav import evaluate_crowdnav
+    from crowdbench.protocols.crowdnav import evaluate_crowdnav
+    from crowdbench.protocols.replay import evaluate
 
     keys = {"spl", "stl", "personal_space_compliance_50cm", "min_ttc_s", "path_irregularity", "social_nav_score"}
     for res in (evaluate_crowdnav(StraightToGoal(), CrowdNavConfig(), episodes=4),

@@ -73,7 +73,7 @@ def recorded_episodes(cfg, scenes: list[str], lists: dict | None = None) -> dict
 
     Raises ``ValueError`` (one line) for an id that is not evaluated or a scene not evaluated.
     """
-    from crowdbench.eval import select_episodes
+    from crowdbench.protocols.engine import select_episodes
 
     v = cfg.viz
     ids = v.episodes
