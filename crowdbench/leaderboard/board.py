@@ -214,9 +214,7 @@ def _run(root: Path, only: list[str] | None = None, check: bool = False, force: 
                 break
             if check and not selected:  # --check --only: the other rows as committed, the named ones re-evaluated
                 committed = _committed(res_path)
-                if committed is None:
-                    missing.append((name, missing_line(d.name, name)))
-                else:
+                if committed is not None:  # (none: a full --check would evaluate it, not list it as missing)
                     results[name].append(committed)
                 continue
             cached, why = (None, None) if check else read_cached(res_path, d.name, sub.kind, sub.data, fp)

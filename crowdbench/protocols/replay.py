@@ -233,6 +233,9 @@ class ReplayProtocol(Protocol):
         return evaluate(policy, scenes, episodes, out_dir=out_dir, save_episodes=save_episodes,
                         sim_overrides={"frame": policy.frame}, meta=meta, humans=track.humans)
 
+    def track_overrides(self, track: Track) -> tuple[str, ...]:
+        return ("env.humans=reactive_replay", f"env.reactive.model={track.humans}") if track.humans else ()
+
     def list_files(self, track: Track, scenes: list[str]) -> list[Path]:
         return [self.list_dir / f"{s}.json" for s in scenes]
 
