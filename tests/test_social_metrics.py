@@ -42,7 +42,7 @@ def polyline(*corners, step: float) -> torch.Tensor:
 
 
 def traces(paths: list[torch.Tensor], goals, outcomes, clearance: torch.Tensor | None = None, humans=None) -> dict:
-    """Traces ``[T, B]`` as :func:`crowdbench.eval.robot_traces` returns them, for hand-made robot paths
+    """Traces ``[T, B]`` as :func:`crowdbench.protocols.engine.robot_traces` returns them, for hand-made robot paths
     (shorter ones padded with the finished robot standing still: inactive steps) and humans
     ``(xy, vel, present)`` ``[T, B, M, ...]`` (default: nobody)."""
     T = max(len(p) for p in paths) - 1

@@ -2,7 +2,7 @@
 
 Setting ``circle_n5`` is circle crossing with 5 humans (``square_n20``: square crossing, 20 humans);
 episode ``i`` is CrowdNav's test case ``i`` (:mod:`crowdbench.envs.crowdnav_cases`). The metrics are
-protocol v1's (:func:`crowdbench.eval.episode_metrics`), with CrowdNav's discomfort distance as the
+protocol v1's (:func:`crowdbench.protocols.engine.episode_metrics`), with CrowdNav's discomfort distance as the
 danger distance. The oracle is privileged only with an invisible robot: the humans' future then
 does not depend on the robot, so it is simulated once without it and handed to the planner.
 """
