@@ -126,9 +126,9 @@ def test_every_builtin_protocol_round_trips_through_the_registry():
 # an env name compared or used as a key: env_name(...) ==, .name == "replay", {"selfplay": ...}, is_selfplay
 WORLD = r"(replay|reactive_replay|selfplay|crowdnav)"
 DISPATCH = re.compile(rf"env_name\([^)]*\)\s*[!=]=|is_selfplay|\bname\s*[!=]=\s*\"{WORLD}\"|\"{WORLD}\":\s*run_")
-# what may still name a world outside the package: the world registry itself, an algorithm that needs
-# CrowdNav's reward (value), the single-robot Gymnasium API, a checkpoint format upgrade
-ALLOWED = {"envs/factory.py", "algos/value_train.py", "envs/registry.py", "algos/checkpoint.py"}
+# what may still name a world outside the package: an algorithm that needs CrowdNav's reward (value), the
+# single-robot Gymnasium API refusing self-play, a checkpoint format upgrade of replay configs
+ALLOWED = {"algos/value_train.py", "envs/registry.py", "algos/checkpoint.py"}
 
 
 def test_no_module_outside_the_protocols_dispatches_on_the_env_name():
