@@ -192,6 +192,6 @@ def test_the_how_to_lists_the_files_and_no_other_module_declares_a_label():
 def test_committed_results_hold_the_tables_metrics(track):
     from crowdbench.leaderboard.tracks import TRACKS
 
-    declared = {m.key for m in of_protocol(TRACKS[track].protocol)}
+    declared = {m.key for m in of_protocol(TRACKS[track].label)}
     for r in committed(track):
         assert all(keys == declared for keys in keys_of(r)), r["meta"]["submission"]
