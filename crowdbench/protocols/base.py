@@ -108,7 +108,9 @@ class Protocol:
 
     # ------------------------------------------------------------------ leaderboard
     def evaluate_track(self, track: Track, policy, scenes: list[str], episodes: int | None, out_dir, meta: dict,
-                       save_episodes: bool = True) -> dict:
+                       env=None, save_episodes: bool = True) -> dict:
+        """The results of ``policy`` on ``track`` (``scenes``: per-scene protocols; ``env``: the track's composed
+        ``env`` config, as ``crowdbench eval`` with the track's overrides sees it), written to ``out_dir``."""
         raise NotImplementedError
 
     def track_overrides(self, track: Track) -> tuple[str, ...]:
