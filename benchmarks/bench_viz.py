@@ -20,7 +20,7 @@ import torch
 from crowdbench.algos.actors import build_actor
 from crowdbench.algos.checkpoint import LearnedPolicy
 from crowdbench.cli import compose
-from crowdbench.eval import evaluate
+from crowdbench.protocols.replay import evaluate
 
 
 def main() -> None:
@@ -35,7 +35,7 @@ def main() -> None:
     policy = LearnedPolicy(build_actor("td3", {"name": "gatedgcn", "dim": 32, "layers": 2, "k": 8}, 1.0),
                            name="td3-gatedgcn-untrained")
     from crowdbench.envs.protocol import load_episodes
-    from crowdbench.eval import select_episodes
+    from crowdbench.protocols.engine import select_episodes
 
     ids = [e["episode"] for e in select_episodes(load_episodes(a.scene), a.episodes)]
     modes = {"off": None, "on-1": ids[:1], "on-5": ids[:5]}

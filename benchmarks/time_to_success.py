@@ -48,7 +48,7 @@ RECIPES = {
 def probe_all(cfg, scenes, episodes: int, spent: list[float]):
     from crowdbench.algos.checkpoint import LearnedPolicy
     from crowdbench.envs.core import SimConfig
-    from crowdbench.eval import evaluate
+    from crowdbench.protocols.replay import evaluate
 
     def probe(actor) -> dict[str, float]:
         t = time.perf_counter()

@@ -18,7 +18,14 @@ from crowdbench.numerics import PINNED, pin
 if "torch" not in sys.modules and "numpy" not in sys.modules:
     pin()
 
-PROTOCOLS = ("v1", "v2-orca", "v2-sfm", "crowdnav-circle5", "crowdnav-circle20", "crowdnav-square5")
+
+def __getattr__(name: str):
+    # PROTOCOLS: the registered tracks (crowdbench/protocols/), read when asked, not at import (before the pin)
+    if name == "PROTOCOLS":
+        from crowdbench.protocols import tracks
+
+        return tuple(tracks())
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 class NumericsError(RuntimeError):
@@ -61,8 +68,9 @@ def evaluate(policy, protocol: str = "v1", scenes: list[str] | None = None, epis
     from crowdbench.envs.protocol import PAPER_SCENES
     from crowdbench.leaderboard.tracks import TRACKS, track_config
 
-    if protocol not in PROTOCOLS:
-        raise ValueError(f"unknown protocol {protocol!r}; valid: {', '.join(PROTOCOLS)}")
+    protocols = __getattr__("PROTOCOLS")
+    if protocol not in protocols:
+        raise ValueError(f"unknown protocol {protocol!r}; valid: {', '.join(protocols)}")
     if scenes and not TRACKS[protocol].replay:
         raise ValueError(f"scenes apply to the replay protocols; {protocol} has one setting, "
                          f"{TRACKS[protocol].setting}")
@@ -79,21 +87,10 @@ def evaluate(policy, protocol: str = "v1", scenes: list[str] | None = None, epis
 
 
 def _evaluate(policy, track, scenes: list[str], episodes: int | None, out_dir, track_config) -> dict:
-    from dataclasses import replace
-
     out = Path(out_dir) if out_dir is not None else None
     meta = {"api": True, "protocol": track.name}
-    if track.replay:
-        from crowdbench.eval import evaluate as evaluate_replay
-
-        return evaluate_replay(policy, scenes, episodes, out_dir=out, save_episodes=out is not None,
-                               sim_overrides={"frame": policy.frame}, meta=meta, humans=track.humans)
-    from crowdbench.envs.factory import sim_config
-    from crowdbench.eval_crowdnav import evaluate_crowdnav
-
-    cfg = replace(sim_config(track_config(track)["env"]), frame=policy.frame)
-    return evaluate_crowdnav(policy, cfg, [track.setting], episodes, out_dir=out, save_episodes=out is not None,
-                             meta=meta)
+    return track.evaluator.evaluate_track(track, policy, scenes, episodes, out, meta, env=track_config(track)["env"],
+                                          save_episodes=out is not None)
 
 
 def make_env(name: str, api: str = "torchrl", seed: int = 0, batch: int = 1, **env):

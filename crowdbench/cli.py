@@ -10,15 +10,11 @@ from crowdbench.cli_eval import (  # the evaluation half of the command line
     Interrupted,
     UsageError,
     check_config,
-    check_protocol_fixed,
+    check_protocol,
     check_viz,
-    eval_options,
     eval_output,
     make_policy,
-    protocol_humans,
-    run_crowdnav_eval,
-    run_eval,
-    run_selfplay_eval,
+    run_protocol,
 )
 from crowdbench.cli_run import run_one
 from crowdbench.cli_submit import cmd_submit
@@ -30,34 +26,18 @@ BASELINES = policies.NAMES  # the registry's built-in policies
 
 def cmd_eval(overrides: list[str]) -> int:
     from crowdbench.envs.core import check_seed
-    from crowdbench.envs.factory import env_name, is_selfplay
 
     cfg = compose(overrides)
     check_config(cfg)
     try:
-        name = env_name(cfg.env)
         check_seed(cfg.seed)
     except ValueError as e:
         raise UsageError(str(e)) from None
-    if name == "crowdnav":
-        with eval_output(cfg, "eval-crowdnav") as out:
-            run_crowdnav_eval(make_policy(str(cfg.policy), cfg), cfg, out, overrides)
-        return 0
-    if is_selfplay(cfg.env):  # every agent acts from the policy (a robot checkpoint too: the transfer test)
-        if str(cfg.policy) in policies.PRIVILEGED:
-            raise UsageError(f"the {cfg.policy} plans against replayed humans, not reacting agents: not available "
-                             f"with env=selfplay; valid: {', '.join(policies.BASELINES)} or a checkpoint path")
-        with eval_output(cfg, "eval-selfplay") as out:
-            run_selfplay_eval(make_policy(str(cfg.policy), cfg), cfg, out, overrides)
-        return 0
-    eval_options(cfg)  # reject bad scenes before loading anything
-    check_protocol_fixed(cfg)
-    check_viz(cfg)
-    if protocol_humans(cfg) is not None and str(cfg.policy) in policies.PRIVILEGED:
-        raise UsageError(f"the {cfg.policy} knows the humans' future, which in protocol v2 depends on the robot: "
-                         "not available with env.humans=reactive_replay")
-    with eval_output(cfg, "eval") as out:
-        run_eval(make_policy(str(cfg.policy), cfg), cfg, out, overrides)
+    protocol = check_protocol(cfg, str(cfg.policy))  # bad scenes, fixed settings, policies before loading anything
+    if protocol.per_scene:
+        check_viz(cfg)  # the recordings are of scenes' episodes
+    with eval_output(cfg, protocol.command) as out:
+        run_protocol(make_policy(str(cfg.policy), cfg), cfg, out, overrides)
     return 0
 
 
@@ -85,12 +65,13 @@ def cmd_leaderboard(args: list[str]) -> int:
 
     ap = argparse.ArgumentParser(prog="crowdbench leaderboard",
                                  description="Validate and evaluate leaderboard submissions; regenerate the table.")
-    ap.add_argument("--check", action="store_true", help="re-evaluate everything (no cache, nothing written); "
+    ap.add_argument("--check", action="store_true", help="re-evaluate everything (no cache, nothing written; "
+                    "with --only: those submissions, the others as committed); "
                     "exit 1 if leaderboard/README.md or a generated block (README, docs) differs from the fresh result")
     ap.add_argument("--force", action="store_true", help="re-evaluate even unchanged submissions")
     ap.add_argument("--only", action="append", metavar="NAME", help="evaluate only this submission (repeatable, "
                     "or comma-separated); "
-                    "the others keep their cached results")
+                    "the others keep their cached results (with --check: their committed ones)")
     ap.add_argument("--episodes", type=int, default=None, help="N episodes per scene (evenly strided; unofficial)")
     ap.add_argument("--scenes", default=None, help="comma-separated scene subset (unofficial)")
     ap.add_argument("--jobs", type=int, default=1, help="evaluate N submissions in parallel "

@@ -1,5 +1,5 @@
-"""The evaluation half of the ``crowdbench`` command line: policies, output directories, the
-per-protocol evaluation runs (replay v1, self-play, CrowdNav) and the training probe."""
+"""The evaluation half of the ``crowdbench`` command line: policies, output directories, the evaluation
+run and the training probe of the config's protocol (crowdbench/protocols/: nothing here asks which)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,6 @@ import time
 from pathlib import Path
 
 from crowdbench import policies
-from crowdbench.envs.core import SimConfig
 
 
 class UsageError(Exception):
@@ -85,89 +84,49 @@ def write_error(e: OSError, out: Path) -> UsageError:
 
 
 def eval_options(cfg) -> tuple[list[str], int | None]:
-    from crowdbench.data.scenes import check_scene
-    from crowdbench.envs.core import check_seed
-    from crowdbench.envs.protocol import EVAL_SCENES
+    """``eval.scenes`` and ``eval.episodes``, checked (every scene with a published list)."""
+    from crowdbench.protocols.replay import scenes_of
 
     try:
-        check_seed(cfg.seed)
+        return scenes_of(cfg)
     except ValueError as e:
         raise UsageError(str(e)) from None
-    scenes = list(cfg.eval.scenes) if not isinstance(cfg.eval.scenes, str) else [cfg.eval.scenes]
-    if not scenes:
-        raise UsageError(f"eval.scenes is empty; evaluation scenes: {', '.join(EVAL_SCENES)}")
+
+
+def protocol_of(cfg):
+    """The protocol of ``cfg.env`` (crowdbench/protocols/ ``of_config``); an unknown one is a one-line error."""
+    from crowdbench.protocols import of_config
+
     try:
-        scenes = [check_scene(s) for s in scenes]
-    except ValueError as e:
-        raise UsageError(str(e)) from None
-    unlisted = [s for s in scenes if s not in EVAL_SCENES]
-    if unlisted:
-        raise UsageError(f"eval.scenes: {', '.join(unlisted)} has no protocol episode list (the training scene); "
-                         f"evaluation scenes: {', '.join(EVAL_SCENES)}")
-    episodes = cfg.eval.episodes
-    if episodes is not None and (not isinstance(episodes, int) or episodes < 1):
-        raise UsageError(f"eval.episodes must be a positive integer or null, got {episodes!r}")
-    return scenes, episodes
-
-
-def protocol_humans(cfg, strict: bool = True) -> str | None:
-    """The reactive model protocol v2 evaluates with (``env.humans=reactive_replay``), or None for v1.
-
-    Training may use any ``env.reactive`` values; evaluation uses the protocol's, so ``crowdbench eval``
-    (``strict``) refuses different ones rather than silently replace them, while a training run's probe
-    and final evaluation (not strict) use the protocol's values for its model."""
-    from crowdbench.envs.factory import replay_humans
-    from crowdbench.envs.protocol import reactive_params, v2_humans
-
-    for key, value in dict(cfg.env.get("reactive") or {}).items():  # before the dataclass sees them
-        if key != "model" and (isinstance(value, bool) or not isinstance(value, int | float)):
-            raise UsageError(f"env.reactive.{key} must be a number, got {value!r}")
-    try:
-        params = replay_humans(cfg.env)
+        return of_config(cfg.env)
     except (ValueError, TypeError) as e:
         raise UsageError(str(e)) from None
-    if params is None or not strict:
-        return None if params is None else params.model
-    fixed = reactive_params({"humans": v2_humans()}, params.model)[0]
-    for key, value in fixed.to_dict().items():
-        if getattr(params, key) != value:
-            raise UsageError(f"env.reactive.{key}={getattr(params, key)} conflicts with protocol v2 ({value}); "
-                             "evaluation always uses the protocol's value")
-    return params.model
 
 
-def run_eval(policy, cfg, out: Path, overrides: list[str], strict: bool = True) -> dict:
-    from crowdbench.eval import evaluate, format_table
-    from crowdbench.fixed_lists import check_replay
+def run_protocol(policy, cfg, out: Path, overrides: list[str], strict: bool = True) -> dict:
+    """Evaluate ``policy`` on ``cfg``'s protocol into ``out``, print its table. ``strict=False`` (the end of a
+    training run): a reactive replay run trained with other ``env.reactive`` values is evaluated on
+    protocol v2's, as its probe was."""
+    protocol = protocol_of(cfg)
 
-    scenes, episodes = eval_options(cfg)
-    sim = SimConfig.fields_of(cfg.env)
+    def progress(scenes: list[str], steps: int):
+        return progress_bar(policy.name, scenes, steps, recorder_factory(policy, cfg, out, scenes))
+
     try:
-        SimConfig(**sim)  # bad env values (the frame too, replaced by the policy's) are one-line errors
-    except ValueError as e:
-        raise UsageError(str(e)) from None
-    sim["frame"] = policy.frame
-    recorders = recorder_factory(policy, cfg, out, scenes)
-    humans = protocol_humans(cfg, strict)
-    try:
-        check_replay("v2" if humans else "v1", scenes)  # the published lists, not look-alikes
-        with progress_bar(policy.name, scenes, SimConfig(**sim).time_limit, recorders) as recorders_and_bar:
-            results = evaluate(policy, scenes, episodes, out_dir=out, save_episodes=bool(cfg.eval.save_episodes),
-                               sim_overrides=sim, meta={"seed": cfg.seed, "overrides": overrides},
-                               recorder_factory=recorders_and_bar, humans=humans)
+        results = protocol.run(policy, cfg, out, overrides, strict, progress)
     except ValueError as e:  # e.g. the oracle on protocol v2, a list that is not the published one
         raise UsageError(str(e)) from None
     except OSError as e:
         raise write_error(e, out) from None
-    print(format_table(results))
+    print(protocol.format_table(results))
     print(f"results written to {out / 'results.json'}")
     return results
 
 
 class StepTicker:
-    """A recorder for :func:`crowdbench.eval.drive` that advances a progress bar by one per time step and
-    passes every call on to the scene's viz recorder, if any. It reads nothing and changes nothing, so the
-    evaluation (and crowdbench/eval.py, hashed into the leaderboard's cache) is untouched."""
+    """A recorder for :func:`crowdbench.protocols.engine.drive` that advances a progress bar by one per time
+    step and passes every call on to the scene's viz recorder, if any. It reads nothing and changes nothing, so
+    the evaluation (and crowdbench/protocols/, hashed into the leaderboard's cache) is untouched."""
 
     def __init__(self, bar, end: int, inner=None):
         self.bar, self.end, self.inner = bar, end, inner
@@ -190,7 +149,7 @@ class StepTicker:
 @contextlib.contextmanager
 def progress_bar(name: str, scenes: list[str], steps: int, inner_factory=None):
     """A progress bar on stderr over ``scenes`` x ``steps`` time steps; yields the recorder factory
-    :func:`crowdbench.eval.evaluate` takes (wrapping ``inner_factory``, the viz recordings)."""
+    :func:`crowdbench.protocols.replay.evaluate` takes (wrapping ``inner_factory``, the viz recordings)."""
     from tqdm import tqdm
 
     bar = tqdm(total=len(scenes) * steps, unit="step", desc=f"eval {name}", dynamic_ncols=True)
@@ -231,102 +190,20 @@ def check_viz(cfg) -> None:
             raise UsageError(str(e)) from None
 
 
-def check_protocol_fixed(cfg) -> None:
-    """The protocol fixes dt, time limit, time base and start radius; refuse an override of them."""
-    from crowdbench.envs.protocol import ProtocolSpec
-
-    spec, env = ProtocolSpec(), SimConfig.fields_of(cfg.env)
-    for key in ("dt", "time_limit", "time_base", "start_radius"):
-        if str(env[key]) != str(getattr(spec, key)):
-            raise UsageError(f"env.{key}={env[key]} conflicts with protocol {spec.version} ({getattr(spec, key)}); "
-                             "evaluation always uses the protocol's value")
-
-
-def check_selfplay_eval(cfg, frame: str = "rotate") -> None:
-    """Every ``env.eval_scenarios`` x ``env.eval_n_agents`` setting can be placed: checked before training, so
-    that e.g. 32 agents on the default 8 m square fail at once, not after a 30-minute run."""
-    from crowdbench.envs.factory import selfplay_config
-    from crowdbench.eval_selfplay import settings
-
-    e = cfg.env
+def check_protocol(cfg, policy_name: str | None = None):
+    """The protocol of ``cfg`` after its checks (``crowdbench eval`` with ``policy_name``; ``crowdbench run``
+    without, before training): bad input is a one-line error before any work."""
+    protocol = protocol_of(cfg)
     try:
-        settings(selfplay_config(e, frame=frame), list(e.eval_scenarios),
-                 None if e.eval_n_agents is None else list(e.eval_n_agents))
-    except ValueError as err:
-        raise UsageError(f"env.eval_n_agents / env.eval_scenarios: {err}") from None
-
-
-def run_selfplay_eval(policy, cfg, out: Path, overrides: list[str]) -> dict:
-    """``env=selfplay``: every agent acts from ``policy`` on the seeded self-play set (docs/selfplay.md)."""
-    from crowdbench.envs.factory import selfplay_config
-    from crowdbench.eval_selfplay import evaluate_selfplay, format_table
-
-    e = cfg.env
-    try:
-        sim = selfplay_config(e, frame=policy.frame)
-        results = evaluate_selfplay(policy, sim, list(e.eval_scenarios),
-                                    None if e.eval_n_agents is None else list(e.eval_n_agents), int(e.eval_episodes),
-                                    int(e.eval_seed), out_dir=out, meta={"seed": cfg.seed, "overrides": overrides})
-    except ValueError as err:
-        raise UsageError(str(err)) from None
-    except OSError as err:
-        raise write_error(err, out) from None
-    print(format_table(results))
-    print(f"results written to {out / 'results.json'}")
-    return results
-
-
-def run_crowdnav_eval(policy, cfg, out: Path, overrides: list[str]) -> dict:
-    """``env=crowdnav``: CrowdNav's test cases of every ``env.eval_settings`` (docs/crowdnav.md)."""
-    from crowdbench.envs.factory import sim_config
-    from crowdbench.eval import format_table
-    from crowdbench.eval_crowdnav import evaluate_crowdnav
-    from crowdbench.fixed_lists import check_crowdnav, crowdnav_digests
-
-    e = cfg.env
-    try:
-        c = sim_config(e)
-        check_crowdnav(crowdnav_digests(c, list(e.eval_settings or [f"{c.scenario}_n{c.n_humans}"])))
-        results = evaluate_crowdnav(policy, c, None if e.eval_settings is None else list(e.eval_settings),
-                                    e.eval_episodes, out_dir=out, save_episodes=bool(cfg.eval.save_episodes),
-                                    meta={"seed": cfg.seed, "overrides": overrides})
-    except ValueError as err:
-        raise UsageError(str(err)) from None
-    except OSError as err:
-        raise write_error(err, out) from None
-    print(format_table(results))
-    print(f"results written to {out / 'results.json'}")
-    return results
+        if policy_name is None:
+            protocol.check_run(cfg)
+        else:
+            protocol.check(cfg, policy_name)
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+    return protocol
 
 
 def make_probe(cfg):
-    """Held-out check during training: success on ``probe_episodes`` of ``probe_scene``'s protocol list."""
-    from crowdbench.algos.checkpoint import LearnedPolicy
-    from crowdbench.data.scenes import check_scene
-    from crowdbench.envs.factory import env_name
-    from crowdbench.eval import evaluate
-
-    if env_name(cfg.env) == "crowdnav":  # CrowdNav's validation cases (its own held-out set)
-        from crowdbench.envs.factory import sim_config
-        from crowdbench.eval_crowdnav import evaluate_crowdnav
-
-        sim = sim_config(cfg.env)
-        setting = f"{sim.scenario}_n{sim.n_humans}"
-
-        def probe_crowdnav(actor) -> dict[str, float]:
-            res = evaluate_crowdnav(LearnedPolicy(actor, frame=cfg.env.frame), sim, [setting],
-                                    cfg.train.probe_episodes, phase="val")["scenes"][setting]
-            return {f"probe_crowdnav_{setting}_success": res["success_rate"]["mean"],
-                    f"probe_crowdnav_{setting}_collision": res["collision_rate"]["mean"]}
-
-        return probe_crowdnav
-    scene = check_scene(cfg.train.probe_scene)
-    humans = protocol_humans(cfg, strict=False) if env_name(cfg.env) == "replay" else None
-
-    def probe(actor) -> dict[str, float]:
-        res = evaluate(LearnedPolicy(actor, frame=cfg.env.frame), [scene], cfg.train.probe_episodes,
-                       sim_overrides=SimConfig.fields_of(cfg.env), humans=humans)["scenes"][scene]
-        return {f"probe_{scene}_success": res["success_rate"]["mean"],
-                f"probe_{scene}_collision": res["collision_rate"]["mean"]}
-
-    return probe
+    """Held-out check during training: the protocol's probe (``probe(actor) -> {name: value}``)."""
+    return protocol_of(cfg).probe(cfg)

@@ -9,15 +9,13 @@ from crowdbench.cli_eval import (
     Interrupted,
     UsageError,
     check_config,
-    check_selfplay_eval,
+    check_protocol,
     check_viz,
     claimed_output,
     eval_options,
     make_probe,
     output_dir,
-    run_crowdnav_eval,
-    run_eval,
-    run_selfplay_eval,
+    run_protocol,
 )
 
 
@@ -47,10 +45,7 @@ def run_one(cfg, overrides: list[str]) -> dict:
                 if not (out / "resume.pt").is_file():
                     raise Interrupted(f"interrupted during the imitation phase; nothing to resume in {out}") from None
                 raise Interrupted(f"interrupted; resume with: {resume_command(overrides, out)}") from None
-    from crowdbench.envs.factory import env_name
-
-    if env_name(cfg.env) == "selfplay":
-        check_selfplay_eval(cfg)
+    check_protocol(cfg)  # e.g. self-play settings that cannot be placed: refused now, not after training
     out = output_dir(cfg, "run", f"{cfg.algo.name}-{cfg.encoder.name}")
     try:
         probe = make_probe(cfg)
@@ -66,10 +61,8 @@ def run_one(cfg, overrides: list[str]) -> dict:
             policy = policy_from_checkpoint(out / "checkpoint.pt")
         except ValueError as e:  # CheckpointError included: bad checkpoint, bad algo/replay/logger value
             raise UsageError(str(e)) from None
-        name = env_name(cfg.env)
-        if name == "replay":  # trained with other env.reactive values: evaluated on protocol v2's (the probe too)
-            return run_eval(policy, cfg, out, overrides, strict=False)
-        return {"selfplay": run_selfplay_eval, "crowdnav": run_crowdnav_eval}[name](policy, cfg, out, overrides)
+        # not strict: trained with other env.reactive values, evaluated on protocol v2's (the probe too)
+        return run_protocol(policy, cfg, out, overrides, strict=False)
 
 
 def resume_command(overrides: list[str], out: Path) -> str:

@@ -1,7 +1,7 @@
 """The metric table: every metric of ``results.json`` declared once, with what the evaluation aggregates it
 from, its labels and digits, its range, its interval and the protocols and tables that have it.
 
-Read by the evaluations' aggregation (``crowdbench/eval.py``, ``eval_crowdnav.py``, ``eval_selfplay.py``),
+Read by the evaluations' aggregation (``crowdbench/protocols/``: ``engine.py``, ``replay.py``, ``selfplay.py``),
 ``crowdbench eval``'s tables, the leaderboard's tables (``leaderboard/README.md``, ``TRACKS.md``, the
 generated blocks of the README and the docs), its statistics and the site. Adding a metric is one entry
 here plus its per-episode value (docs/architecture.md, "How to add a metric"). Definitions:

@@ -3,7 +3,7 @@
 SPL, STL, personal-space compliance at 0.5 m, minimum time-to-collision, path irregularity and one
 composite score (definitions, units and citations: docs/protocol.md, "Metrics"). Every function is
 batched: ``[T, B]`` step traces, ``[T, B, M]`` human traces, ``[B]`` results; float64 throughout.
-:func:`episode_social_metrics` is what :func:`crowdbench.eval.episode_metrics` adds to protocol v1's
+:func:`episode_social_metrics` is what :func:`crowdbench.protocols.engine.episode_metrics` adds to protocol v1's
 metrics (which it leaves untouched).
 """
 
@@ -13,7 +13,7 @@ import math
 
 import torch
 
-PERSONAL_SPACE_50CM = 0.5  # m, surface gap (the 0.45 m one is crowdbench.eval.PERSONAL_SPACE)
+PERSONAL_SPACE_50CM = 0.5  # m, surface gap (the 0.45 m one is crowdbench.protocols.engine.PERSONAL_SPACE)
 TTC_HORIZON = 10.0  # s: a minimum time-to-collision is reported capped here (no collision course = the cap)
 SCORE_TTC = 3.0  # s: the composite's TTC term, min(TTC, 3 s) / 3 s (pedestrians' interaction horizon)
 
@@ -90,7 +90,7 @@ def social_nav_score(success, spl_, stl_, personal_space, ttc, tau: float = SCOR
 
 def episode_social_metrics(tr: dict, cfg, success: torch.Tensor, path: torch.Tensor,
                            nav_time: torch.Tensor) -> dict[str, torch.Tensor]:
-    """The new per-episode metrics ``[B]`` from the traces of :func:`crowdbench.eval.robot_traces`
+    """The new per-episode metrics ``[B]`` from the traces of :func:`crowdbench.protocols.engine.robot_traces`
     (``humans_xy``, ``humans_vel`` ``[T, B, M, 2]``, ``humans_present`` ``[T, B, M]`` at every step's end)."""
     straight = (tr["goal"] - tr["start"]).double().norm(dim=-1)
     act = tr["active"]

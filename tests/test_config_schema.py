@@ -123,8 +123,7 @@ def no_work(monkeypatch, tmp_path):
     monkeypatch.setattr(crowdbench.algos.train, "train", started)
     import crowdbench.cli_run
 
-    for name in ("run_eval", "run_selfplay_eval", "run_crowdnav_eval"):
-        monkeypatch.setattr(crowdbench.cli_run, name, started)
+    monkeypatch.setattr(crowdbench.cli_run, "run_protocol", started)
     work = tmp_path / "work"
     work.mkdir()
     monkeypatch.chdir(work)

@@ -158,8 +158,8 @@ def test_batched_rejection_equals_crowdnavs_loop(scenario, n, phase):
 
 def test_published_case_lists_keep_their_digests():
     from crowdbench.envs.crowdnav import CrowdNavConfig
-    from crowdbench.fixed_lists import CROWDNAV as DIGESTS
-    from crowdbench.fixed_lists import crowdnav_digests
+    from crowdbench.protocols.crowdnav import crowdnav_digests
+    from crowdbench.protocols.lists import CROWDNAV as DIGESTS
 
     assert crowdnav_digests(CrowdNavConfig(), list(DIGESTS)) == DIGESTS
 

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import json
 
-from crowdbench import fixed_lists
 from crowdbench.cli import main
 from crowdbench.envs import protocol
 from crowdbench.leaderboard import run
+from crowdbench.protocols import lists as fixed_lists
 
 
 def _forge(tmp_path, monkeypatch):

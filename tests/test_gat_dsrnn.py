@@ -246,7 +246,7 @@ def test_recorded_attention_equals_the_encoders_weights(tmp_path, name):
     from crowdbench.algos.actors import build_actor
     from crowdbench.algos.checkpoint import LearnedPolicy
     from crowdbench.cli import compose
-    from crowdbench.eval import evaluate
+    from crowdbench.protocols.replay import evaluate
     from crowdbench.viz.record import make_recorder_factory, read_recording
 
     torch.manual_seed(0)

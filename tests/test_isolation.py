@@ -46,7 +46,7 @@ class Enc(nn.Module):
 HOSTILE = {
     # the finding: a module that rewrites the metrics turned straight's 0.8 into 1.0 on hotel
     "patcher": ('''
-import crowdbench.eval as ev
+import crowdbench.protocols.replay as ev
 _orig = ev.episode_metrics
 def _all_success(*a, **k):
     m = _orig(*a, **k)
@@ -144,9 +144,9 @@ def test_hostile_submissions_cannot_change_another_row(tmp_path):
     make_learned(root, "honest", ENCODER)
     for name, (code, _) in hostile.items():
         make_learned(root, name, ENCODER + code)
-    import crowdbench.eval
+    import crowdbench.protocols.replay
 
-    eval_src = Path(crowdbench.eval.__file__).read_text()
+    eval_src = Path(crowdbench.protocols.replay.__file__).read_text()
     log: list[str] = []
     limits = Limits(step_s=3.0, load_s=120.0, memory_gb=6.0)
     assert run(root, log=log.append, limits=limits, **FAST) == 1
@@ -158,7 +158,7 @@ def test_hostile_submissions_cannot_change_another_row(tmp_path):
             continue
         assert len(mine) == 1 and says in mine[0] and "\n" not in mine[0] and len(mine[0]) < 400, (name, mine)
     assert (root / "results" / "straight" / "results.json").read_text() == reference
-    assert Path(crowdbench.eval.__file__).read_text() == eval_src
+    assert Path(crowdbench.protocols.replay.__file__).read_text() == eval_src
     honest = json.loads((root / "results" / "honest" / "results.json").read_text())
     assert honest["episode_outcomes"] == json.loads((clean / "results" / "honest" / "results.json").read_text())[
         "episode_outcomes"]

@@ -15,7 +15,7 @@ LAYERS = {
     2: ("envs",),
     3: ("models", "baselines"),
     4: ("algos",),
-    5: ("eval", "eval_crowdnav", "eval_selfplay", "policies", "social_metrics", "fixed_lists", "viz"),
+    5: ("protocols", "policies", "social_metrics", "viz"),
     6: ("leaderboard",),
     7: ("cli_eval", "compose", "cli_run", "cli_value", "cli_submit", "cli_usage", "sweep", "sweep_check", "api"),
     8: ("cli", "entry", "__main__"),

@@ -287,15 +287,16 @@ def test_fingerprint_covers_every_module_an_evaluation_loads(tmp_path):
     assert {PACKAGE_DIR / "algos" / "actors.py", PACKAGE_DIR / "baselines" / "oracle.py"} <= loaded
     hashed = set(code_files())
     # everything loaded is hashed, except the harness package itself (versioned by HARNESS_VERSION) and the
-    # published lists' hashes (fixed_lists.py: a check that can refuse an evaluation, never change a number)
+    # published lists' hashes (protocols/lists.py: a check that can refuse an evaluation, never change a number)
     # and the plots' colours (viz/palette.py: drawn after the evaluation, never a number)
     # and what the harness's submission checks import to name things: the algorithm registry (which imports
     # every algorithm's training code: leaderboard/schema.py) and the config schema's FRAMES (loading.py)
-    assert {p.relative_to(PACKAGE_DIR).parts[0] for p in loaded - hashed} == {"leaderboard", "fixed_lists.py", "viz",
+    assert {p.relative_to(PACKAGE_DIR).parts[0] for p in loaded - hashed} == {"leaderboard", "protocols", "viz",
                                                                               "algos", "config_schema.py"}
     assert {PACKAGE_DIR / "algos" / "checkpoint.py", PACKAGE_DIR / "algos" / "actors.py"} <= hashed
     assert {p.relative_to(PACKAGE_DIR).as_posix() for p in loaded - hashed if p.parent.name == "viz"} == \
         {"viz/__init__.py", "viz/palette.py"}
+    assert [p for p in loaded - hashed if p.parent.name == "protocols"] == [PACKAGE_DIR / "protocols" / "lists.py"]
     assert PACKAGE_DIR / "policies.py" in hashed  # the registry builds every baseline
     assert PACKAGE_DIR / "algos" / "train.py" not in hashed  # training code does not invalidate results
 

@@ -361,7 +361,7 @@ def test_sarl_attention_is_drawn_in_the_recording(tmp_path):
     from crowdbench.algos.actors import build_actor
     from crowdbench.algos.checkpoint import LearnedPolicy
     from crowdbench.cli import compose
-    from crowdbench.eval import evaluate
+    from crowdbench.protocols.replay import evaluate
     from crowdbench.viz.record import make_recorder_factory, read_recording
 
     torch.manual_seed(0)

@@ -14,7 +14,6 @@ import torch
 
 from crowdbench import metric_table
 from crowdbench.envs.core import SUCCESS, SimConfig
-from crowdbench.eval import aggregate, episode_metrics, format_table, summarise
 from crowdbench.metric_table import (
     COUNT,
     IN_AVERAGE,
@@ -35,14 +34,16 @@ from crowdbench.metric_table import (
     of_protocol,
     spread,
 )
+from crowdbench.protocols.engine import aggregate, episode_metrics, format_table, summarise
 
 REPO = Path(__file__).resolve().parents[1]
 TABLES = {IN_AVERAGE, IN_README, IN_DOCS, IN_TRACKS, IN_SELFPLAY}
 
 
 def test_protocol_names_are_the_evaluations():
-    from crowdbench import eval_crowdnav, eval_selfplay
     from crowdbench.envs import protocol
+    from crowdbench.protocols import crowdnav as eval_crowdnav
+    from crowdbench.protocols import selfplay as eval_selfplay
 
     assert (metric_table.V1, metric_table.V2) == (protocol.PROTOCOL_VERSION, protocol.V2)
     assert (metric_table.CROWDNAV, metric_table.SELFPLAY) == (eval_crowdnav.PROTOCOL, eval_selfplay.PROTOCOL)
@@ -118,9 +119,9 @@ def test_every_key_an_evaluation_writes_is_in_the_table():
     from crowdbench.baselines.straight import StraightToGoal
     from crowdbench.envs.crowdnav import CrowdNavConfig
     from crowdbench.envs.selfplay import SelfPlayConfig
-    from crowdbench.eval import evaluate
-    from crowdbench.eval_crowdnav import PROTOCOL, evaluate_crowdnav
-    from crowdbench.eval_selfplay import evaluate_selfplay
+    from crowdbench.protocols.crowdnav import PROTOCOL, evaluate_crowdnav
+    from crowdbench.protocols.replay import evaluate
+    from crowdbench.protocols.selfplay import evaluate_selfplay
 
     runs = {V1: evaluate(StraightToGoal(), ["hotel"], episodes=3), V2: evaluate(StraightToGoal(), ["hotel"], 3, humans="sfm"),
             PROTOCOL: evaluate_crowdnav(StraightToGoal(), CrowdNavConfig(), episodes=3),
@@ -191,6 +192,6 @@ def test_the_how_to_lists_the_files_and_no_other_module_declares_a_label():
 def test_committed_results_hold_the_tables_metrics(track):
     from crowdbench.leaderboard.tracks import TRACKS
 
-    declared = {m.key for m in of_protocol(TRACKS[track].protocol)}
+    declared = {m.key for m in of_protocol(TRACKS[track].label)}
     for r in committed(track):
         assert all(keys == declared for keys in keys_of(r)), r["meta"]["submission"]

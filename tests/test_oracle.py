@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-import crowdbench.eval as ev
+import crowdbench.protocols.replay as ev
 from crowdbench.baselines.oracle import PLANNED_SUCCESS, Oracle
 from crowdbench.baselines.orca import ORCA
 from crowdbench.baselines.straight import StraightToGoal

@@ -14,7 +14,7 @@ from crowdbench.algos.train import train
 from crowdbench.cli import compose
 from crowdbench.envs.factory import make_env
 from crowdbench.envs.policy import ACTION, GROUP
-from crowdbench.eval import evaluate
+from crowdbench.protocols.replay import evaluate
 
 SMALL = ["algo=ppo", "encoder=mlp", "encoder.dim=16", "encoder.hidden=[32]", "env.batch=4"]
 

@@ -74,8 +74,8 @@ def test_ctrl_c_checkpoints_and_prints_the_resume_command(tmp_path):
 
 
 def test_eval_shows_a_progress_bar_and_the_same_numbers(tmp_path, capsys):
-    from crowdbench.eval import evaluate
     from crowdbench.policies import build
+    from crowdbench.protocols.replay import evaluate
 
     assert main(["eval", "policy=straight", "eval.episodes=3", "eval.scenes=[hotel,eth]", f"out={tmp_path}/e"]) == 0
     err = capsys.readouterr().err

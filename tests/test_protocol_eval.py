@@ -17,7 +17,8 @@ from crowdbench.envs.protocol import (
     load_episodes,
     protocol_path,
 )
-from crowdbench.eval import evaluate, mean_ci, rate_ci
+from crowdbench.protocols.engine import mean_ci, rate_ci
+from crowdbench.protocols.replay import evaluate
 
 SPEC_KEYS = ["protocol", "scene", "episode", "start_time_s", "dt", "start", "goal", "robot_xy", "outcome",
              "nav_time_s", "danger_steps", "min_clearance"]

@@ -96,9 +96,9 @@ def test_partial_and_garbled_log_rows_do_not_block_resume(tmp_path):
 @pytest.mark.parametrize("kind", ["file", "under_file", "read_only"])
 def test_unwritable_eval_output_fails_before_evaluating(kind, tmp_path, capsys, monkeypatch):
     """Finding 17: found before the evaluation runs (root ignores permissions: read-only is simulated)."""
-    import crowdbench.eval
+    import crowdbench.protocols.replay
 
-    monkeypatch.setattr(crowdbench.eval, "evaluate", lambda *a, **k: pytest.fail("evaluated"))
+    monkeypatch.setattr(crowdbench.protocols.replay, "evaluate", lambda *a, **k: pytest.fail("evaluated"))
     blocker = tmp_path / "a_file"
     blocker.write_text("keep")
     out = {"file": blocker, "under_file": blocker / "sub", "read_only": tmp_path / "ro" / "out"}[kind]
@@ -125,12 +125,12 @@ def test_unwritable_run_and_viz_outputs(tmp_path, capsys, monkeypatch):
 
 
 def test_eval_results_write_failure_is_one_line(tmp_path, capsys, monkeypatch):
-    import crowdbench.eval
+    import crowdbench.protocols.replay
 
     def refuse(out_dir, *a, **k):
         raise PermissionError(13, "Permission denied", str(out_dir / "results.json"))
 
-    monkeypatch.setattr(crowdbench.eval, "write_results", refuse)
+    monkeypatch.setattr(crowdbench.protocols.replay, "write_results", refuse)
     assert main(["eval", "policy=straight", *EVAL, f"out={tmp_path}"]) == 2
     one_line_error(capsys, f"cannot write {tmp_path / 'results.json'}: Permission denied")
 

@@ -22,7 +22,7 @@ from crowdbench.envs.core import COLLISION, RUNNING, SUCCESS
 from crowdbench.envs.factory import make_env, selfplay_env, selfplay_parallel_env
 from crowdbench.envs.policy import GROUP, obs_tensordict
 from crowdbench.envs.selfplay import SelfPlayConfig, _square, episode_set, sample_episodes
-from crowdbench.eval_selfplay import evaluate_selfplay
+from crowdbench.protocols.selfplay import evaluate_selfplay
 
 ALL = torch.ones(1, dtype=torch.bool)
 TINY = ["env.batch=4", "train.frames_per_batch=32", "algo.warmup=64", "algo.batch_size=16", "train.utd=0.125",

@@ -15,8 +15,8 @@ import pytest
 import torch
 
 from crowdbench.envs.core import COLLISION, SUCCESS, SimConfig
-from crowdbench.eval import aggregate, episode_metrics, format_table, mean_ci
 from crowdbench.metric_table import UNIT, clip, metric_range, spread
+from crowdbench.protocols.engine import aggregate, episode_metrics, format_table, mean_ci
 from crowdbench.social_metrics import (
     SCORE_TTC,
     TTC_HORIZON,
@@ -42,7 +42,7 @@ def polyline(*corners, step: float) -> torch.Tensor:
 
 
 def traces(paths: list[torch.Tensor], goals, outcomes, clearance: torch.Tensor | None = None, humans=None) -> dict:
-    """Traces ``[T, B]`` as :func:`crowdbench.eval.robot_traces` returns them, for hand-made robot paths
+    """Traces ``[T, B]`` as :func:`crowdbench.protocols.engine.robot_traces` returns them, for hand-made robot paths
     (shorter ones padded with the finished robot standing still: inactive steps) and humans
     ``(xy, vel, present)`` ``[T, B, M, ...]`` (default: nobody)."""
     T = max(len(p) for p in paths) - 1
@@ -163,7 +163,8 @@ BEFORE = REPO / "tests" / "data" / "protocol_v1_hotel5_before_social_metrics.jso
 NUMBERS = """
 import json
 from crowdbench.envs.protocol import PROTOCOL_VERSION, ProtocolSpec, load_episodes
-from crowdbench.eval import aggregate, episode_metrics, evaluate, rollout, select_episodes, sim_config_for
+from crowdbench.protocols.engine import aggregate, episode_metrics, select_episodes
+from crowdbench.protocols.replay import evaluate, rollout, sim_config_for
 from crowdbench.policies import build
 out = {}
 saved = load_episodes("hotel")
@@ -286,8 +287,8 @@ def test_leaderboard_tables_render_the_metrics_only_from_results_that_hold_them(
 def test_crowdnav_and_protocol_v2_results_hold_the_metrics():
     from crowdbench.baselines.straight import StraightToGoal
     from crowdbench.envs.crowdnav import CrowdNavConfig
-    from crowdbench.eval import evaluate
-    from crowdbench.eval_crowdnav import evaluate_crowdnav
+    from crowdbench.protocols.crowdnav import evaluate_crowdnav
+    from crowdbench.protocols.replay import evaluate
 
     keys = {"spl", "stl", "personal_space_compliance_50cm", "min_ttc_s", "path_irregularity", "social_nav_score"}
     for res in (evaluate_crowdnav(StraightToGoal(), CrowdNavConfig(), episodes=4),

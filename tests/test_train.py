@@ -13,7 +13,7 @@ from crowdbench.algos import registry as algo_registry
 from crowdbench.algos.checkpoint import CheckpointError, load_checkpoint, policy_from_checkpoint
 from crowdbench.algos.train import train
 from crowdbench.cli import compose, main
-from crowdbench.eval import evaluate
+from crowdbench.protocols.replay import evaluate
 
 TINY = ["env.batch=8", "train.frames_per_batch=64", "algo.warmup=128", "algo.batch_size=16", "train.utd=0.125",
         "train.checkpoint_every=128"]

@@ -253,7 +253,7 @@ def test_candidate_values_equal_a_loop_over_actions(net):
 
 
 def test_greedy_evaluation_is_deterministic_and_labelled_privileged():
-    from crowdbench.eval_crowdnav import evaluate_crowdnav
+    from crowdbench.protocols.crowdnav import evaluate_crowdnav
 
     short = CrowdNavConfig(time_limit=30)  # an untrained network rarely arrives: keep its episodes short
     runs = [evaluate_crowdnav(ValuePolicy(value_model()), short, episodes=4, save_episodes=True) for _ in range(2)]
@@ -351,9 +351,9 @@ def test_a_value_submission_in_a_worker_gives_the_in_process_outcomes(tmp_path):
 
     from crowdbench.algos.checkpoint import policy_from_checkpoint, save_checkpoint
     from crowdbench.cli import compose
-    from crowdbench.eval_crowdnav import evaluate_crowdnav
     from crowdbench.leaderboard.sandbox import Limits
     from crowdbench.leaderboard.worker import WorkerPolicy
+    from crowdbench.protocols.crowdnav import evaluate_crowdnav
 
     sub = tmp_path / "value_s0"
     sub.mkdir()

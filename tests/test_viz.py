@@ -18,8 +18,8 @@ from crowdbench.algos.checkpoint import LearnedPolicy, save_checkpoint
 from crowdbench.baselines.straight import StraightToGoal
 from crowdbench.cli import compose, main
 from crowdbench.data.scenes import load_scene
-from crowdbench.eval import evaluate
 from crowdbench.models.graph import Graph
+from crowdbench.protocols.replay import evaluate
 
 SCENE = "students003"
 

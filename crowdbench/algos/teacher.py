@@ -2,7 +2,7 @@
 
 The expert of :func:`crowdbench.algos.pretrain.collect_demonstrations` acts on the training env's
 observations. A value-lookahead checkpoint (``algo=value``) also reads its candidates' next states,
-which the evaluation loop computes from the world (crowdbench/eval.py); here they are computed the same
+which the evaluation loop computes from the world (crowdbench/protocols/engine.py); here they are computed the same
 way from the training env's world, before each step. A teacher whose lookahead is privileged (``query``)
 is refused: what it knows would pass into the student, which could then not be labelled unprivileged.
 """

@@ -75,7 +75,7 @@ class Oracle(Policy):
 
     # ------------------------------------------------------------------ Policy interface
     def plan(self, sim: World) -> None:
-        """Privileged hook, called by :func:`crowdbench.eval.rollout` right after the reset:
+        """Privileged hook, called by :func:`crowdbench.protocols.replay.rollout` right after the reset:
         plan every episode of the batch from the simulator's scene, start indices, starts and goals."""
         plans, outcomes = [], []
         for lo in range(0, sim.B, self.chunk):
@@ -94,7 +94,7 @@ class Oracle(Policy):
         robot = td[OBS + ("robot",)]
         if self._plan is None or self._plan.shape[1] != robot.shape[0]:
             raise RuntimeError("the oracle is privileged: it acts only in rollouts that call plan(sim) "
-                               "(crowdbench.eval.evaluate does)")
+                               "(crowdbench.protocols.replay.evaluate does)")
         k = self._k
         self._k += 1
         if k >= self._plan.shape[0]:

@@ -1,30 +1,46 @@
 """The one place that turns the ``env`` config into a world, a scenario and the envs over them.
 
-``env.name`` picks the protocol: ``replay`` (one robot among replayed ETH/UCY pedestrians,
-protocol v1), ``selfplay`` (``n_agents`` learning agents, optional replayed background) or
-``crowdnav`` (one robot among ORCA or social-force humans, CrowdNav's circle and square crossing).
+``env.name`` picks the world from :data:`WORLDS`: ``replay`` (one robot among replayed ETH/UCY
+pedestrians, protocols v1 and v2), ``selfplay`` (``n_agents`` learning agents, optional replayed
+background) or ``crowdnav`` (one robot among ORCA or social-force humans, CrowdNav's circle and square
+crossing). Which protocol evaluates a world is the protocols' business (crowdbench/protocols/).
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
 
 from crowdbench.data.scenes import Scene
 from crowdbench.envs.core import SimConfig
 from crowdbench.envs.humans.replay import NoCrowd, ReplayCrowd
 from crowdbench.envs.world import World
 
-ENVS = ("replay", "selfplay", "crowdnav")
 REPLAY_HUMANS = ("replay", "reactive_replay")
+
+
+@dataclass(frozen=True)
+class WorldKind:
+    """How ``env.name`` builds its world: ``config()`` is its simulator config class (a
+    :class:`SimConfig`), ``build(env_cfg, cfg, batch)`` returns ``(world, scenario)``."""
+
+    config: Callable[[], type]
+    build: Callable
+
+
+WORLDS: dict[str, WorldKind] = {}
+
+
+def register_world(name: str, config: Callable[[], type], build: Callable) -> None:
+    """Make ``env.name=NAME`` build worlds with ``build``, typed by the class ``config()`` returns."""
+    WORLDS[name] = WorldKind(config, build)
 
 
 def env_name(env_cfg) -> str:
     name = str(env_cfg.get("name", "replay"))
-    if name not in ENVS:
-        raise ValueError(f"unknown env.name {name!r}; valid: {', '.join(ENVS)}")
+    if name not in WORLDS:
+        raise ValueError(f"unknown env.name {name!r}; valid: {', '.join(WORLDS)}")
     return name
-
-
-def is_selfplay(env_cfg) -> bool:
-    return env_name(env_cfg) == "selfplay"
 
 
 def selfplay_config(env_cfg, **overrides):
@@ -86,25 +102,32 @@ def crowdnav_world(cfg, batch: int):
 
 
 def sim_config(env_cfg, **overrides):
-    """The typed simulator config of ``env_cfg`` (:class:`SimConfig` or its per-protocol subclass)."""
-    name = env_name(env_cfg)
-    if name == "selfplay":
-        return selfplay_config(env_cfg, **overrides)
-    if name == "crowdnav":
-        from crowdbench.envs.crowdnav import CrowdNavConfig
-
-        return CrowdNavConfig(**{**CrowdNavConfig.fields_of(env_cfg), **overrides})
-    return SimConfig(**{**SimConfig.fields_of(env_cfg), **overrides})
+    """The typed simulator config of ``env_cfg`` (:class:`SimConfig` or its per-world subclass)."""
+    cls = WORLDS[env_name(env_cfg)].config()
+    return cls(**{**cls.fields_of(env_cfg), **overrides})
 
 
 def make_world(env_cfg, batch: int, **overrides):
     """``(world, scenario)`` for the ``env`` config (``overrides``: simulator settings, e.g. ``frame``)."""
-    name, cfg = env_name(env_cfg), sim_config(env_cfg, **overrides)
-    if name == "selfplay":
-        return selfplay_world(cfg, batch)
-    if name == "crowdnav":
-        return crowdnav_world(cfg, batch)
-    return replay_world(str(env_cfg.scene), batch, cfg, replay_humans(env_cfg))
+    return WORLDS[env_name(env_cfg)].build(env_cfg, sim_config(env_cfg, **overrides), batch)
+
+
+def _selfplay_config_class():
+    from crowdbench.envs.selfplay import SelfPlayConfig
+
+    return SelfPlayConfig
+
+
+def _crowdnav_config_class():
+    from crowdbench.envs.crowdnav import CrowdNavConfig
+
+    return CrowdNavConfig
+
+
+register_world("replay", lambda: SimConfig,
+               lambda env_cfg, cfg, batch: replay_world(str(env_cfg.scene), batch, cfg, replay_humans(env_cfg)))
+register_world("selfplay", _selfplay_config_class, lambda env_cfg, cfg, batch: selfplay_world(cfg, batch))
+register_world("crowdnav", _crowdnav_config_class, lambda env_cfg, cfg, batch: crowdnav_world(cfg, batch))
 
 
 def make_env(cfg, progress_reward: float = 0.0, human_dropout: float = 0.0, extra=()):

@@ -34,7 +34,7 @@ class Policy(ABC):
     frame: str = "rotate"
     #: short name used in results files
     name: str = "policy"
-    #: privileged policies (the oracle) see the simulator itself: :func:`crowdbench.eval.rollout`
+    #: privileged policies (the oracle) see the simulator itself: :func:`crowdbench.protocols.replay.rollout`
     #: calls ``plan(sim)`` right after the reset, before the first ``act``. Their numbers are upper
     #: bounds, never comparable to a policy that only sees observations; results label them.
     privileged: bool = False

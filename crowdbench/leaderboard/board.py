@@ -22,7 +22,6 @@ import yaml
 from tqdm import tqdm
 
 from crowdbench.envs.protocol import EVAL_SCENES, PROTOCOL_VERSION
-from crowdbench.fixed_lists import ListError, check_replay
 from crowdbench.leaderboard import render
 from crowdbench.leaderboard.budget import with_budgets
 from crowdbench.leaderboard.cache import fingerprint
@@ -33,6 +32,9 @@ from crowdbench.leaderboard.schema import DEFAULT_ROOT, SubmissionError, read_su
 from crowdbench.leaderboard.store import RootBusy, locked, read_cached, write_atomic, write_results
 from crowdbench.leaderboard.track_tables import render_tracks, trained_on
 from crowdbench.leaderboard.tracks import TRACK_ORDER, TRACKS, check_tracks
+from crowdbench.protocols import get as protocol
+from crowdbench.protocols import names as protocol_names
+from crowdbench.protocols.lists import ListError
 
 TRACKS_FILE = "TRACKS.md"
 
@@ -69,11 +71,20 @@ def _scene_problem(scenes: list[str]) -> str | None:
         except (OSError, ValueError) as e:  # missing, sha256 mismatch, unknown scene
             return f"{path}: {' '.join(str(e).replace(str(path), 'the file').split())}"
     try:
-        for version in ("v1", "v2"):
-            check_replay(version, scenes)  # missing, not JSON, or not the published list (crowdbench/fixed_lists.py)
+        for name in protocol_names():
+            protocol(name).check_lists(scenes)  # missing, not JSON, or not the published list (protocols/lists.py)
     except ListError as e:
         return str(e)
     return None
+
+
+def _committed(path: Path) -> dict | None:
+    """The results file as it is on disk (whatever its fingerprint), or None if there is none readable."""
+    try:
+        res = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return res if isinstance(res, dict) else None
 
 
 def _print(msg: str) -> None:
@@ -201,6 +212,11 @@ def _run(root: Path, only: list[str] | None = None, check: bool = False, force: 
             except SubmissionError as e:
                 reject(e, None)
                 break
+            if check and not selected:  # --check --only: the other rows as committed, the named ones re-evaluated
+                committed = _committed(res_path)
+                if committed is not None:  # (none: a full --check would evaluate it, not list it as missing)
+                    results[name].append(committed)
+                continue
             cached, why = (None, None) if check else read_cached(res_path, d.name, sub.kind, sub.data, fp)
             trusted = cached is not None and why is None
             if not check and (trusted and not force or not selected):

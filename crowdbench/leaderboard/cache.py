@@ -15,7 +15,7 @@ import hashlib
 import json
 from pathlib import Path
 
-from crowdbench.envs.protocol import PROTOCOL_DIR, PROTOCOL_VERSION, V2_DIR
+from crowdbench.envs.protocol import PROTOCOL_VERSION
 from crowdbench.leaderboard.schema import REPO_DIR, Submission, policy_params
 from crowdbench.leaderboard.tracks import TRACKS, Track, track_config
 from crowdbench.numerics import describe
@@ -23,8 +23,11 @@ from crowdbench.numerics import describe
 HARNESS_VERSION = 1
 # what evaluating a submission runs: the policy registry and the evaluation loop; every crowdbench
 # module these import (at any depth) is hashed into the cache fingerprint (code_files)
-EVAL_MODULES = ("crowdbench.eval", "crowdbench.eval_crowdnav", "crowdbench.policies", "crowdbench.algos.checkpoint", "crowdbench.models",
+EVAL_MODULES = ("crowdbench.protocols", "crowdbench.policies", "crowdbench.algos.checkpoint", "crowdbench.models",
                 "crowdbench.baselines.oracle", "crowdbench.baselines.orca", "crowdbench.baselines.straight")
+# the published lists' hashes can refuse an evaluation, never change a number: a new list's hash is no reason
+# to re-evaluate every submission
+UNHASHED = ("crowdbench.protocols.lists",)
 
 
 def _sha(h, path: Path) -> None:
@@ -53,7 +56,10 @@ def code_files(roots=EVAL_MODULES) -> tuple[Path, ...]:
     seen: set[Path] = set()
     todo = list(roots)
     while todo:
-        parts = todo.pop().split(".")
+        name = todo.pop()
+        if any(name == u or name.startswith(f"{u}.") for u in UNHASHED):
+            continue
+        parts = name.split(".")
         for i in range(1, len(parts) + 1):  # importing a.b.c runs a and a.b first
             path = _module_file(".".join(parts[:i]))
             if path is None or path in seen:
@@ -79,8 +85,8 @@ def fingerprint(sub: Submission, scenes: list[str], episodes: int | None, track:
     for p in [sub.yaml_path, *([sub.checkpoint] if sub.checkpoint else []), *sub.extra_files]:
         _sha(h, p)
     # the episode lists (CrowdNav's cases are made by code, hashed below)
-    for s in scenes if track.replay else []:
-        _sha(h, (V2_DIR if track.protocol == "v2" else PROTOCOL_DIR) / f"{s}.json")
+    for f in track.evaluator.list_files(track, scenes):
+        _sha(h, f)
     for f in code_files():
         _sha(h, f)
     return h.hexdigest()

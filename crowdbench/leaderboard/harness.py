@@ -8,7 +8,7 @@ Layout (``--root``, default ``./leaderboard``)::
     leaderboard/results/oracle/unavoidable.json       episodes the privileged oracle fails
     leaderboard/README.md, TRACKS.md, leaderboard.png generated (crowdbench.leaderboard.board)
 
-The harness computes every number itself (``crowdbench.eval.evaluate`` / ``evaluate_crowdnav``, the
+The harness computes every number itself (each track's protocol, crowdbench/protocols/, the
 same code as ``crowdbench eval``); submitters only provide a yaml and, for learned entries, a
 state-dict checkpoint (``torch.load(..., weights_only=True)``) and optionally an encoder module. A
 learned entry's code and checkpoint are loaded only in its worker process
@@ -29,7 +29,6 @@ import torch
 
 from crowdbench import policies
 from crowdbench.envs.protocol import EVAL_SCENES
-from crowdbench.fixed_lists import check_crowdnav
 from crowdbench.leaderboard.budget import budget_of
 from crowdbench.leaderboard.cache import HARNESS_VERSION
 from crowdbench.leaderboard.sandbox import DEFAULT_LIMITS, Limits
@@ -88,7 +87,7 @@ def evaluate_submission(sub: Submission, policy, scenes: list[str], episodes: in
         meta.update(track=track.name, trained_on=sub.data.get("track", "v1") if sub.kind == "learned" else None)
     with tempfile.TemporaryDirectory() as tmp:
         res = evaluate_track(track, policy, scenes, episodes, Path(tmp), meta)
-        check_crowdnav(res.get("lists", {}))  # (the replay lists are checked before any job starts)
+        track.evaluator.check_results(res)  # (the replay lists are checked before any job starts)
         rows = [json.loads(line) for line in (Path(tmp) / "episodes.jsonl").read_text().splitlines()]
     outcomes: dict[str, list] = {s: [] for s in res["scenes"]}
     for r in rows:

@@ -127,7 +127,7 @@ class Site:
     def summary_table(self, name: str, order: list) -> list[str]:
         """The track's ranking: its headline figures, success first (the rows of TRACKS.md's table)."""
         track, home = TRACKS[name], [r for g in (g for _, g in order) for r in g]
-        cols = columns(IN_TRACKS, home, track.protocol)
+        cols = columns(IN_TRACKS, home, track.label)
         rows = [self.entry_cells(rank, g) + [td(*group_cell(g, track, m.key, m.digits)) for m in cols]
                 for rank, g in order]
         head = [("#", True), ("method", False), ("trained on", False), ("seeds", True), *((m.column, True) for m in cols)]

@@ -60,10 +60,11 @@ def make_media(media: Path, sub_dir: Path, fp: str, n: int, scene: str = SCENE,
     first): ``trajectories.png``, ``<scene>_epNNN.gif`` and ``.rrd`` per episode and the manifest, returned.
     Raises :class:`~.schema.SubmissionError` (or the evaluation's exception) on failure."""
     from crowdbench.envs.protocol import load_episodes
-    from crowdbench.eval import evaluate, select_episodes
     from crowdbench.leaderboard.harness import build_policy
     from crowdbench.leaderboard.schema import read_submission
     from crowdbench.leaderboard.tracks import TRACKS
+    from crowdbench.protocols.engine import select_episodes
+    from crowdbench.protocols.replay import evaluate
     from crowdbench.viz.record import SceneRecorder
     from crowdbench.viz.records import load_rows
     from crowdbench.viz.video import episode_video

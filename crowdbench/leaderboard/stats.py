@@ -19,8 +19,8 @@ import math
 import numpy as np
 
 from crowdbench.envs.protocol import PAPER_SCENES
-from crowdbench.eval import rate_ci
 from crowdbench.metric_table import Z95, clip, is_rate, spread
+from crowdbench.protocols.engine import rate_ci
 
 BOOTSTRAP = 2000  # resamples per cell
 SEED = 0

@@ -75,7 +75,7 @@ def track_table(track: Track, results: list[dict], scenes: list[str]) -> list[st
     """Baselines, the oracle (where it applies) and the entries trained on ``track``."""
     home = [r for r in results if trained_on(r) in (None, track.name)]
     groups = group_results(home)
-    cols = columns(IN_TRACKS, home, track.protocol)
+    cols = columns(IN_TRACKS, home, track.label)
     where = "average over the four paper scenes" if track.replay else f"CrowdNav's test cases of {track.setting}"
     L = [f"## `{track.name}`: {track.title}", "",
          f"Ranked (#) by success, the first column. Each cell: {where}; mean [95% interval] of a run, or over "

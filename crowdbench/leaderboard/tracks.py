@@ -1,4 +1,5 @@
-"""Leaderboard tracks: the protocols every entry is evaluated on, and the tables of each.
+"""Leaderboard tracks: the protocols every entry is evaluated on, and the tables of each. Each protocol of
+the registry (crowdbench/protocols/) defines its tracks; this module reads them from there.
 
 =====================  =========================================================================
 track                  protocol
@@ -24,57 +25,43 @@ track. Baselines are built with each track's own settings (CrowdNav's ORCA on Cr
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass, replace
+from collections.abc import Mapping, Sequence
 
-TRACK_ORDER = ("v1", "v2-orca", "v2-sfm", "crowdnav-circle5", "crowdnav-circle20", "crowdnav-square5")
+from crowdbench.protocols import ProtocolError, get, of_config, tracks
+from crowdbench.protocols.base import Track
 
-
-@dataclass(frozen=True)
-class Track:
-    name: str
-    title: str
-    protocol: str  # v1 | v2 | crowdnav-v1
-    humans: str | None = None  # v2: the reactive model
-    setting: str | None = None  # CrowdNav: e.g. circle_n5
-
-    @property
-    def privileged_ok(self) -> bool:
-        """The oracle's plan is privileged knowledge only where the humans' future ignores the robot."""
-        return self.protocol != "v2"
-
-    @property
-    def replay(self) -> bool:
-        return self.protocol in ("v1", "v2")
-
-    @property
-    def results_file(self) -> str:
-        return "results.json" if self.name == "v1" else f"{self.name}.json"
-
-    @property
-    def config_overrides(self) -> tuple[str, ...]:
-        """The Hydra overrides that give this track's env (and ``orca.*``) to the baselines."""
-        if self.replay:
-            return ("env.humans=reactive_replay", f"env.reactive.model={self.humans}") if self.humans else ()
-        scenario, n = self.setting.split("_n")
-        return ("env=crowdnav", f"env.scenario={scenario}", f"env.n_humans={n}")
-
-    def fits(self, kind: str, privileged: bool = False) -> bool:
-        """Privileged entries (the oracle, a value entry with the ``query`` lookahead) only where the humans'
-        future ignores the robot: there their knowledge is of the task, elsewhere it does not exist."""
-        return not (kind == "oracle" or privileged) or self.privileged_ok
+__all__ = ["TRACKS", "TRACK_ORDER", "Track", "check_tracks", "evaluate_track", "track_config", "trained_track",
+           "units"]
 
 
-TRACKS = {t.name: t for t in (
-    Track("v1", "Replay (protocol v1): the recorded ETH/UCY pedestrians, who never yield", "v1"),
-    Track("v2-orca", "Reactive replay (protocol v2): the recorded pedestrians yield through ORCA", "v2", "orca"),
-    Track("v2-sfm", "Reactive replay (protocol v2): the recorded pedestrians yield through social force", "v2", "sfm"),
-    Track("crowdnav-circle5", "CrowdNav circle crossing, 5 ORCA humans, invisible robot", "crowdnav-v1",
-          setting="circle_n5"),
-    Track("crowdnav-circle20", "CrowdNav circle crossing, 20 ORCA humans, invisible robot", "crowdnav-v1",
-          setting="circle_n20"),
-    Track("crowdnav-square5", "CrowdNav square crossing, 5 ORCA humans, invisible robot", "crowdnav-v1",
-          setting="square_n5"),
-)}
+class _Tracks(Mapping):
+    """Every registered protocol's tracks by name, read when asked (a protocol registered later has its own)."""
+
+    def __getitem__(self, name: str) -> Track:
+        return tracks()[name]
+
+    def __iter__(self):
+        return iter(tracks())
+
+    def __len__(self) -> int:
+        return len(tracks())
+
+
+class _Order(Sequence):
+    """The tracks' names in registration order (tables, the default ``--tracks``)."""
+
+    def __getitem__(self, i):
+        return tuple(tracks())[i]
+
+    def __len__(self) -> int:
+        return len(tracks())
+
+    def __repr__(self) -> str:
+        return repr(tuple(tracks()))
+
+
+TRACKS: Mapping[str, Track] = _Tracks()
+TRACK_ORDER: Sequence[str] = _Order()
 
 
 def check_tracks(names) -> list[str]:
@@ -88,15 +75,10 @@ def check_tracks(names) -> list[str]:
 def trained_track(cfg: dict) -> str | None:
     """The track a checkpoint's training config (``env``) corresponds to, or None (self-play, other settings)."""
     env = cfg.get("env") or {}
-    name = env.get("name", "replay")
-    if name == "replay":
-        if env.get("humans", "replay") == "replay":
-            return "v1"
-        return f"v2-{(env.get('reactive') or {}).get('model', 'orca')}"
-    if name == "crowdnav" and env.get("humans", "orca") == "orca" and not env.get("robot_visible", False):
-        track = f"crowdnav-{env.get('scenario', 'circle')}{env.get('n_humans', 5)}"
-        return track if track in TRACKS else None
-    return None
+    try:
+        return of_config(env).trained_track(env)
+    except (ProtocolError, ValueError, TypeError):  # an env no protocol evaluates
+        return None
 
 
 @functools.cache
@@ -117,20 +99,13 @@ def track_config(track: Track) -> dict:
     return copy.deepcopy(_track_config(track.config_overrides))
 
 
-def evaluate_track(track: Track, policy, scenes: list[str], episodes: int | None, out_dir, meta: dict) -> dict:
-    """Evaluate ``policy`` on ``track`` (``scenes``: replay tracks only) into ``out_dir`` with episodes."""
-    if track.replay:
-        from crowdbench.eval import evaluate
-
-        return evaluate(policy, scenes, episodes, out_dir=out_dir, save_episodes=True,
-                        sim_overrides={"frame": policy.frame}, meta=meta, humans=track.humans)
-    from crowdbench.envs.factory import sim_config
-    from crowdbench.eval_crowdnav import evaluate_crowdnav
-
-    cfg = replace(sim_config(track_config(track)["env"]), frame=policy.frame)
-    return evaluate_crowdnav(policy, cfg, [track.setting], episodes, out_dir=out_dir, save_episodes=True, meta=meta)
+def evaluate_track(track: Track, policy, scenes: list[str], episodes: int | None, out_dir, meta: dict,
+                   save_episodes: bool = True) -> dict:
+    """Evaluate ``policy`` on ``track`` (``scenes``: per-scene tracks only) into ``out_dir`` with episodes."""
+    return get(track.protocol).evaluate_track(track, policy, scenes, episodes, out_dir, meta,
+                                              env=track_config(track)["env"], save_episodes=save_episodes)
 
 
 def units(track: Track, scenes: list[str]) -> list[str]:
     """The result keys of ``track``: the scenes of a replay track, the one setting of a CrowdNav track."""
-    return list(scenes) if track.replay else [track.setting]
+    return track.evaluator.units(track, scenes)

@@ -1,6 +1,6 @@
 """Rerun recordings (``.rrd``) of evaluation episodes, with the robot's attention (paper Fig. 5).
 
-:func:`make_recorder_factory` returns the ``recorder_factory`` that :func:`crowdbench.eval.evaluate`
+:func:`make_recorder_factory` returns the ``recorder_factory`` that :func:`crowdbench.protocols.replay.evaluate`
 calls once per scene. Its :class:`SceneRecorder` is the rollout's recorder hook:
 
 - ``recorder(sim, td, action)`` before every step ``k``: the state at step ``k`` (humans with
@@ -73,7 +73,7 @@ def recorded_episodes(cfg, scenes: list[str], lists: dict | None = None) -> dict
 
     Raises ``ValueError`` (one line) for an id that is not evaluated or a scene not evaluated.
     """
-    from crowdbench.eval import select_episodes
+    from crowdbench.protocols.engine import select_episodes
 
     v = cfg.viz
     ids = v.episodes
@@ -99,7 +99,7 @@ def recorded_episodes(cfg, scenes: list[str], lists: dict | None = None) -> dict
 
 
 def make_recorder_factory(policy, cfg, out_dir: Path, scenes: list[str]):
-    """``recorder_factory(scene)`` for :func:`crowdbench.eval.evaluate` (``None`` for unrecorded scenes)."""
+    """``recorder_factory(scene)`` for :func:`crowdbench.protocols.replay.evaluate` (``None`` for unrecorded scenes)."""
     lists: dict[str, list[dict]] = {}
     plan = recorded_episodes(cfg, scenes, lists)
     rec_dir = Path(out_dir) / cfg.viz.dir

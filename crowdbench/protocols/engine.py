@@ -1,48 +1,36 @@
-"""The evaluation protocol: saved episode list -> batched rollout -> metrics with 95% CIs -> results JSON.
+"""The evaluation engine the protocols share: roll a policy out over a fixed episode set in the batched
+world, turn the traces into per-episode values, aggregate them with their 95% intervals
+(crowdbench/metric_table.py) and write the results files atomically.
 
-All episodes of a scene run in one batched simulator (``B`` = number of episodes), so a
-policy is called once per time step for the whole list. Metric definitions: docs/protocol.md.
+All episodes of a setting run in one batched simulator (``B`` = number of episodes), so a policy is
+called once per time step for the whole list. Metric definitions: docs/protocol.md. The protocols
+(:mod:`crowdbench.protocols`) choose the episodes, the world and the layout of results.json.
 """
 
 from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict, replace
 from pathlib import Path
 
 import torch
 
-from crowdbench.data.scenes import check_scene
 from crowdbench.envs.core import OUTCOMES, RUNNING, SUCCESS, SimConfig
-from crowdbench.envs.factory import replay_world
 from crowdbench.envs.lookahead import lookahead_observation
 from crowdbench.envs.policy import ACTION, OBS, Policy
-from crowdbench.envs.protocol import (
-    PAPER_SCENES,
-    PROTOCOL_VERSION,
-    V2,
-    V2_MODELS,
-    ProtocolSpec,
-    load_episodes,
-    load_episodes_v2,
-    reactive_params,
-)
+from crowdbench.envs.protocol import PAPER_SCENES, PROTOCOL_VERSION
 from crowdbench.envs.torchrl_env import CrowdEnv
 from crowdbench.metric_table import (
     ANY,
-    IN_AVERAGE,
     IN_TRACKS,
     Z95,
     Metric,
     clip,
     columns,
     half_width,
-    in_table,
     of_protocol,
     within,
 )
-from crowdbench.numerics import describe
 from crowdbench.social_metrics import episode_social_metrics
 
 PERSONAL_SPACE = 0.45  # m, surface gap
@@ -131,13 +119,6 @@ def drive(env: CrowdEnv, policy: Policy, recorder=None, on_reset=None, on_step=N
             break
     if recorder is not None and hasattr(recorder, "close"):
         recorder.close()
-
-
-def rollout(policy: Policy, scene, episodes: list[dict], cfg: SimConfig, recorder=None, reactive=None) -> dict:
-    """Run ``episodes`` of ``scene`` (a name or a :class:`~crowdbench.data.scenes.Scene`) in one batch
-    through the env (``reactive``: protocol v2's ``(ReactiveParams, SFMParams)``); return per-step traces ``[T, B]``."""
-    world, scenario = replay_world(scene, len(episodes), replace(cfg, frame=policy.frame), *(reactive or ()))
-    return robot_traces(CrowdEnv(world, scenario, episodes=scenario.from_list(episodes)), policy, recorder)
 
 
 def robot_traces(env: CrowdEnv, policy: Policy, recorder=None, privileged_view=None) -> dict:
@@ -231,78 +212,6 @@ def aggregate(m: dict[str, torch.Tensor], protocol: str = PROTOCOL_VERSION) -> d
         x = values[metric.source or metric.key]
         out[metric.key] = summarise(metric, x[ok] if metric.successful_only else x)
     return out
-
-
-def episode_records(scene: str, episodes: list[dict], tr: dict, m: dict, cfg: SimConfig,
-                    protocol: str = PROTOCOL_VERSION) -> list[dict]:
-    """Rows of ``episodes.jsonl`` in SPEC section 6's format."""
-    rows = []
-    for b, e in enumerate(episodes):
-        n = int(m["steps"][b])
-        ok = bool(m["success"][b])
-        rows.append({
-            "protocol": protocol, "scene": scene, "episode": e["episode"],
-            "start_time_s": e["start_time_s"], "dt": cfg.dt, "start": e["start"], "goal": e["goal"],
-            "robot_xy": [[round(x, 5) for x in p] for p in tr["xy"][: n + 1, b].tolist()],
-            "outcome": OUTCOMES[int(m["outcome"][b])],
-            "nav_time_s": float(m["nav_time"][b]) if ok else None,
-            "danger_steps": int(m["danger_steps"][b]),
-            "min_clearance": float(m["min_clearance"][b]),
-        })
-    return rows
-
-
-def sim_config_for(spec: ProtocolSpec, **overrides) -> SimConfig:
-    """The simulator configuration the protocol fixes (dt, time limit, time base, radius)."""
-    return SimConfig(**{**overrides, "dt": spec.dt, "time_limit": spec.time_limit, "time_base": spec.time_base,
-                        "start_radius": spec.start_radius})
-
-
-def evaluate(policy: Policy, scenes=PAPER_SCENES, episodes: int | None = None, out_dir: Path | None = None,
-             save_episodes: bool = False, sim_overrides: dict | None = None, meta: dict | None = None,
-             recorder_factory=None, humans: str | None = None) -> dict:
-    """Evaluate ``policy`` on the saved protocol episode lists; optionally write results files.
-
-    ``humans``: None for protocol v1 (the recording), ``orca`` / ``sfm`` for protocol v2 (reactive replay
-    with that model, its parameters fixed by the v2 lists)."""
-    scenes = [check_scene(s) for s in scenes]
-    if humans is not None and humans not in V2_MODELS:
-        raise ValueError(f"unknown reactive model {humans!r}; valid: {', '.join(V2_MODELS)}")
-    if humans is not None and getattr(policy, "privileged", False):
-        raise ValueError("the oracle knows the humans' future, which in protocol v2 depends on the robot: "
-                         "it has no privileged plan there (protocol v1 and CrowdNav with an invisible robot only)")
-    protocol = PROTOCOL_VERSION if humans is None else V2
-    results = {"protocol": protocol, "policy": policy.name, "meta": meta or {}, "numerics": describe(),
-               "scenes": {}}
-    if humans is not None:
-        results["humans"] = humans
-    if getattr(policy, "privileged", False):
-        results["privileged"] = True
-    rows = []
-    for scene in scenes:
-        saved = load_episodes(scene) if humans is None else load_episodes_v2(scene)
-        spec = ProtocolSpec(**{**saved["spec"], "version": PROTOCOL_VERSION})
-        cfg = sim_config_for(spec, **(sim_overrides or {}))
-        eps = select_episodes(saved, episodes)
-        recorder = recorder_factory(scene) if recorder_factory else None
-        reactive = None if humans is None else reactive_params(saved, humans)
-        tr = rollout(policy, scene, eps, cfg, recorder, reactive)
-        m = episode_metrics(tr, cfg)
-        results["scenes"][scene] = aggregate(m, protocol)
-        if save_episodes:
-            rows += episode_records(scene, eps, tr, m, cfg, protocol)
-        results["sim_config"] = asdict(cfg)
-        if reactive is not None:
-            results["reactive"] = {**reactive[0].to_dict(), **({"social_force": asdict(reactive[1])}
-                                                               if humans == "sfm" else {})}
-    paper = [s for s in PAPER_SCENES if s in results["scenes"]]
-    if paper:
-        means = {x.key: [results["scenes"][s][x.key]["mean"] for s in paper] for x in in_table(IN_AVERAGE)}
-        # an undefined scene value (no successful episode: no nav time) leaves the average undefined
-        results["average_paper_scenes"] = {k: None if None in v else sum(v) / len(v) for k, v in means.items()}
-    if out_dir is not None:
-        write_results(out_dir, results, rows if save_episodes else None)
-    return results
 
 
 def write_results(out_dir: Path, results: dict, rows: list[dict] | None = None) -> None:

@@ -1,4 +1,4 @@
-"""Self-play evaluation: a fixed seeded episode set -> batched rollout of all agents -> metrics -> results JSON.
+"""The self-play protocol: a fixed seeded episode set -> batched rollout of all agents -> metrics -> results JSON.
 
 Every agent of every episode acts from the same :class:`~crowdbench.envs.policy.Policy`
 (a learned actor, ORCA or straight-to-goal), called once per step for the ``[E, A]`` agents
@@ -25,12 +25,13 @@ from pathlib import Path
 import torch
 
 from crowdbench.envs.core import COLLISION, OUTCOMES, SUCCESS
-from crowdbench.envs.factory import selfplay_world
+from crowdbench.envs.factory import env_name, selfplay_config, selfplay_world
 from crowdbench.envs.policy import Policy
 from crowdbench.envs.selfplay import SelfPlayConfig, episode_set
 from crowdbench.envs.torchrl_env import CrowdEnv
-from crowdbench.eval import drive, summarise, write_results
 from crowdbench.metric_table import IN_SELFPLAY, in_table, metric
+from crowdbench.protocols.base import Protocol
+from crowdbench.protocols.engine import drive, summarise, write_results
 
 PROTOCOL = "selfplay-v1"
 
@@ -121,3 +122,44 @@ def format_table(results: dict) -> str:
         vals = [(r[m.key] if m.key in r else r["episode"][m.key])["mean"] for m in cols]
         lines.append(f"{name:<12}" + "".join(f"{'n/a' if v is None else f'{v:.3f}':>15}" for v in vals))
     return "\n".join(lines)
+
+
+class SelfPlayProtocol(Protocol):
+    """Every agent acts from the policy (a robot checkpoint too: the transfer test); no leaderboard track.
+    Its training probe is protocol v1's: a self-play policy is also a robot policy."""
+
+    name, label, world, command = "selfplay", PROTOCOL, "selfplay", "eval-selfplay"
+
+    def selects(self, env_cfg) -> bool:
+        return env_name(env_cfg) == self.world
+
+    def check(self, cfg, policy_name: str) -> None:
+        from crowdbench.policies import BASELINES, PRIVILEGED
+
+        if policy_name in PRIVILEGED:
+            raise ValueError(f"the {policy_name} plans against replayed humans, not reacting agents: not available "
+                             f"with env=selfplay; valid: {', '.join(BASELINES)} or a checkpoint path")
+
+    def check_run(self, cfg) -> None:
+        """Every ``env.eval_scenarios`` x ``env.eval_n_agents`` setting can be placed: checked before training, so
+        that e.g. 32 agents on the default 8 m square fail at once, not after a 30-minute run."""
+        e = cfg.env
+        try:
+            settings(selfplay_config(e, frame="rotate"), list(e.eval_scenarios),
+                     None if e.eval_n_agents is None else list(e.eval_n_agents))
+        except ValueError as err:
+            raise ValueError(f"env.eval_n_agents / env.eval_scenarios: {err}") from None
+
+    def run(self, policy, cfg, out: Path, overrides: list[str], strict: bool = True, progress=None) -> dict:
+        e = cfg.env
+        return evaluate_selfplay(policy, selfplay_config(e, frame=policy.frame), list(e.eval_scenarios),
+                                 None if e.eval_n_agents is None else list(e.eval_n_agents), int(e.eval_episodes),
+                                 int(e.eval_seed), out_dir=out, meta={"seed": cfg.seed, "overrides": overrides})
+
+    def format_table(self, results: dict) -> str:
+        return format_table(results)
+
+    def probe(self, cfg):
+        from crowdbench.protocols.replay import replay_probe
+
+        return replay_probe(cfg, None)

@@ -1,8 +1,8 @@
-"""CrowdNav evaluation: CrowdNav's 500 test cases -> batched rollout through the env -> metrics -> results JSON.
+"""The CrowdNav protocol: CrowdNav's 500 test cases -> batched rollout through the env -> metrics -> results JSON.
 
 Setting ``circle_n5`` is circle crossing with 5 humans (``square_n20``: square crossing, 20 humans);
 episode ``i`` is CrowdNav's test case ``i`` (:mod:`crowdbench.envs.crowdnav_cases`). The metrics are
-protocol v1's (:func:`crowdbench.eval.episode_metrics`), with CrowdNav's discomfort distance as the
+protocol v1's (:func:`crowdbench.protocols.engine.episode_metrics`), with CrowdNav's discomfort distance as the
 danger distance. The oracle is privileged only with an invisible robot: the humans' future then
 does not depend on the robot, so it is simulated once without it and handed to the planner.
 """
@@ -18,11 +18,18 @@ import torch
 
 from crowdbench.data.scenes import Scene
 from crowdbench.envs.crowdnav import CrowdNavConfig, CrowdNavScenario, crowdnav_crowd, list_digest
-from crowdbench.envs.factory import crowdnav_world
+from crowdbench.envs.factory import crowdnav_world, env_name
 from crowdbench.envs.policy import Policy
 from crowdbench.envs.torchrl_env import CrowdEnv
-from crowdbench.eval import aggregate, episode_metrics, robot_traces, select_episodes, write_results
 from crowdbench.numerics import describe
+from crowdbench.protocols.base import Protocol, Track
+from crowdbench.protocols.engine import (
+    aggregate,
+    episode_metrics,
+    robot_traces,
+    select_episodes,
+    write_results,
+)
 
 PROTOCOL = "crowdnav-v1"
 SETTING = re.compile(r"^(circle|square)_n([1-9][0-9]*)$")
@@ -33,6 +40,16 @@ def parse_setting(name: str) -> tuple[str, int]:
     if not m:
         raise ValueError(f"unknown CrowdNav setting {name!r}; valid: circle_n<humans> or square_n<humans>, e.g. circle_n5")
     return m.group(1), int(m.group(2))
+
+
+def crowdnav_digests(cfg, settings) -> dict[str, str]:
+    """The digests of ``settings``' CrowdNav test lists under ``cfg`` (generated once per process:
+    the evaluation that follows reuses them)."""
+    out = {}
+    for s in settings:
+        scenario, n = parse_setting(s)
+        out[s] = list_digest(CrowdNavScenario(replace(cfg, scenario=scenario, n_humans=n)).test_list())
+    return out
 
 
 def future_view(world, cfg: CrowdNavConfig, episodes: dict[str, torch.Tensor]):
@@ -114,3 +131,63 @@ def episode_rows(setting: str, eps: dict, tr: dict, m: dict, cfg: CrowdNavConfig
                      "outcome": OUTCOMES[int(m["outcome"][b])], "nav_time_s": float(m["nav_time"][b]) if ok else None,
                      "danger_steps": int(m["danger_steps"][b]), "min_clearance": float(m["min_clearance"][b])})
     return rows
+
+
+def _track(setting: str, humans: int, kind: str) -> Track:
+    return Track(f"crowdnav-{setting.replace('_n', '')}", f"CrowdNav {kind} crossing, {humans} ORCA humans, invisible robot",
+                 "crowdnav", setting=setting)
+
+
+class CrowdNavProtocol(Protocol):
+    """CrowdNav's test cases of each ``env.eval_settings``; its validation cases are the training probe."""
+
+    name, label, world, command = "crowdnav", PROTOCOL, "crowdnav", "eval-crowdnav"
+    tracks = (_track("circle_n5", 5, "circle"), _track("circle_n20", 20, "circle"), _track("square_n5", 5, "square"))
+
+    def selects(self, env_cfg) -> bool:
+        return env_name(env_cfg) == self.world
+
+    def run(self, policy, cfg, out: Path, overrides: list[str], strict: bool = True, progress=None) -> dict:
+        from crowdbench.protocols.lists import check_crowdnav
+
+        e = cfg.env
+        c = self.sim_config(e)
+        check_crowdnav(crowdnav_digests(c, list(e.eval_settings or [f"{c.scenario}_n{c.n_humans}"])))
+        return evaluate_crowdnav(policy, c, None if e.eval_settings is None else list(e.eval_settings),
+                                 e.eval_episodes, out_dir=out, save_episodes=bool(cfg.eval.save_episodes),
+                                 meta={"seed": cfg.seed, "overrides": overrides})
+
+    def probe(self, cfg):
+        from crowdbench.algos.checkpoint import LearnedPolicy
+
+        sim = self.sim_config(cfg.env)
+        setting = f"{sim.scenario}_n{sim.n_humans}"
+
+        def probe_crowdnav(actor) -> dict[str, float]:  # the validation cases: CrowdNav's own held-out set
+            res = evaluate_crowdnav(LearnedPolicy(actor, frame=cfg.env.frame), sim, [setting],
+                                    cfg.train.probe_episodes, phase="val")["scenes"][setting]
+            return {f"probe_crowdnav_{setting}_success": res["success_rate"]["mean"],
+                    f"probe_crowdnav_{setting}_collision": res["collision_rate"]["mean"]}
+
+        return probe_crowdnav
+
+    def evaluate_track(self, track: Track, policy, scenes: list[str], episodes: int | None, out_dir, meta: dict,
+                       env=None, save_episodes: bool = True) -> dict:
+        cfg = replace(self.sim_config(env), frame=policy.frame)
+        return evaluate_crowdnav(policy, cfg, [track.setting], episodes, out_dir=out_dir,
+                                 save_episodes=save_episodes, meta=meta)
+
+    def track_overrides(self, track: Track) -> tuple[str, ...]:
+        scenario, n = parse_setting(track.setting)
+        return ("env=crowdnav", f"env.scenario={scenario}", f"env.n_humans={n}")
+
+    def check_results(self, results: dict) -> None:
+        from crowdbench.protocols.lists import check_crowdnav
+
+        check_crowdnav(results.get("lists", {}))
+
+    def trained_track(self, env: dict) -> str | None:
+        if env.get("humans", "orca") != "orca" or env.get("robot_visible", False):
+            return None
+        track = f"crowdnav-{env.get('scenario', 'circle')}{env.get('n_humans', 5)}"
+        return track if track in {t.name for t in self.tracks} else None

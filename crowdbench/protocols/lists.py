@@ -8,7 +8,8 @@ case list's digest (``crowdbench.envs.crowdnav.list_digest``) is not the track's
 means a new version with new constants here, never an edit of these.
 
 Why a module of its own: the results cache hashes every module an evaluation imports; this check
-can only refuse an evaluation, never change a number, so it stays out of that set.
+can only refuse an evaluation, never change a number, so it stays out of that set (``UNHASHED`` in
+crowdbench/leaderboard/cache.py).
 """
 
 from __future__ import annotations
@@ -84,18 +85,3 @@ def check_crowdnav(lists: dict) -> None:
         if want is not None and digest != want:
             raise ListError(f"CrowdNav setting {setting}: case list digest {str(digest)[:12]}... is not the "
                             f"published one ({want[:12]}...); crowdbench/envs/crowdnav_cases.py changed")
-
-
-def crowdnav_digests(cfg, settings) -> dict[str, str]:
-    """The digests of ``settings``' CrowdNav test lists under ``cfg`` (generated once per process:
-    the evaluation that follows reuses them)."""
-    from dataclasses import replace
-
-    from crowdbench.envs.crowdnav import CrowdNavScenario, list_digest
-    from crowdbench.eval_crowdnav import parse_setting
-
-    out = {}
-    for s in settings:
-        scenario, n = parse_setting(s)
-        out[s] = list_digest(CrowdNavScenario(replace(cfg, scenario=scenario, n_humans=n)).test_list())
-    return out
