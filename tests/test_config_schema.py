@@ -39,6 +39,15 @@ RADIUS_ENCODERS = ('gat', 'gatedgcn', 'gcn')  # the encoders with an edge radius
 OFF_POLICY_EXPERIMENTS = ("paper", "leaderboard", "baselines", "crowdnav", "crowdnav_distill", "reactive", "warmstart")  # they set algo.replay
 
 
+def _algo_of(method: str) -> str:
+    """The algorithm a method's yaml selects (its ``override /algo`` default)."""
+    defaults = yaml.safe_load((CONFIG_DIR / "method" / f"{method}.yaml").read_text())["defaults"]
+    return next(d["override /algo"] for d in defaults if isinstance(d, dict) and "override /algo" in d)
+
+
+ON_POLICY_METHODS = tuple(m for m in OPTIONS["method"] if _algo_of(m) in ("ppo", "ippo", "mappo"))
+
+
 @pytest.mark.slow
 def test_each_experiment_and_method_validates_on_its_own():
     """The quick suite's share of the combinations below: each experiment, each method, by itself."""
@@ -57,9 +66,11 @@ def test_every_shipped_config_combination_validates_and_every_key_has_a_schema_f
         for overrides in composed_combinations(env):
             cfg = hydra_compose(config_name="config", overrides=overrides)
             seen += 1
-            if "method=gatedgcn_ppo" in overrides and any(f"experiment={e}" in overrides for e in OFF_POLICY_EXPERIMENTS):
-                # an off-policy recipe's replay settings are no PPO keys
-                with pytest.raises(ConfigError, match=r"^algo\.(replay|exploration_sigma): algo='ppo' has no such key"):
+            if any(f"method={m}" in overrides for m in ON_POLICY_METHODS) and any(
+                    f"experiment={e}" in overrides for e in OFF_POLICY_EXPERIMENTS):
+                # an off-policy recipe's replay settings are no PPO-family keys
+                with pytest.raises(ConfigError,
+                                   match=r"^algo\.(replay|exploration_sigma): algo='(ppo|ippo|mappo)' has no such key"):
                     validate(cfg)
                 continue
             value_method = any(o.startswith("method=") and o.endswith("_value") for o in overrides)
@@ -89,6 +100,7 @@ def test_every_shipped_config_combination_validates_and_every_key_has_a_schema_f
     n = {g: len(v) for g, v in OPTIONS.items()}
     assert seen == (n["experiment"] + 1) * (n["method"] + 1) + n["algo"] * n["encoder"] * n["train"]
     assert n["method"] >= 8 and n["encoder"] >= 6
+    assert {"gatedgcn_ppo", "gatedgcn_ippo", "gatedgcn_mappo"} <= set(ON_POLICY_METHODS)
 
 
 @pytest.mark.parametrize("group, schemas", [("env", ENV_SCHEMAS), ("algo", ALGO_SCHEMAS), ("encoder", ENCODER_SCHEMAS)])

@@ -292,7 +292,9 @@ def test_fingerprint_covers_every_module_an_evaluation_loads(tmp_path):
     # and what the harness's submission checks import to name things: the algorithm registry (which imports
     # every algorithm's training code: leaderboard/schema.py) and the config schema's FRAMES (loading.py)
     assert {p.relative_to(PACKAGE_DIR).parts[0] for p in loaded - hashed} == {"leaderboard", "protocols", "viz",
-                                                                              "algos", "config_schema.py"}
+                                                                              "algos", "config_schema.py", "models"}
+    # of the models, only the centralised critics that MAPPO / MATD3's training imports (never an actor)
+    assert [p for p in loaded - hashed if p.parent.name == "models"] == [PACKAGE_DIR / "models" / "scene_critic.py"]
     assert {PACKAGE_DIR / "algos" / "checkpoint.py", PACKAGE_DIR / "algos" / "actors.py"} <= hashed
     assert {p.relative_to(PACKAGE_DIR).as_posix() for p in loaded - hashed if p.parent.name == "viz"} == \
         {"viz/__init__.py", "viz/palette.py"}
