@@ -82,6 +82,15 @@ def test_every_shipped_config_combination_validates_and_every_key_has_a_schema_f
                 with pytest.raises(ConfigError, match=r"^algo\.\w+: algo='\w+' has no such key"):
                     validate(cfg)
                 continue
+            if any(f"experiment={e}" in overrides for e in ("selfplay", "selfplay_warmstart")) and env != "selfplay":
+                # a self-play recipe's env keys (mixed crossings, agent counts) are env=selfplay's alone
+                try:
+                    validate(cfg)
+                except ConfigError as e:
+                    assert str(e).startswith("env."), (overrides, e)
+                else:
+                    assert unknown_keys(cfg) and all(k.startswith("env.") for k in unknown_keys(cfg)), overrides
+                continue
             if "experiment=reactive" in overrides and "env=replay" not in overrides:
                 with pytest.raises(ConfigError, match="^env.humans: must be one of orca, sfm"):
                     validate(cfg)  # reactive replay is the replay env's (env.humans=reactive_replay)
