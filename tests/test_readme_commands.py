@@ -96,6 +96,9 @@ INVOCATIONS: dict[str, list[list[str]]] = {
     "crowdbench leaderboard --site DIR [--site-figures N]":  # figures and the browser: tests/test_site.py
         [["leaderboard", "--root", "{lb}", "--episodes", "2", "--scenes", "hotel", "--tracks", "v1", "--site",
           "{tmp}/site", "--site-figures", "0"]],
+    "crowdbench run experiment=selfplay_warmstart":  # 4 agents, 8 demonstrated steps, 64 frames, evaluated on 4
+        [["run", "experiment=selfplay_warmstart", "env.n_agents=4", *SELFPLAY, "env.eval_n_agents=[4]",
+          "train.pretrain_frames=8", "train.pretrain_epochs=1", "train.pretrain_bc_updates=4", "out={tmp}/sp_ws"]],
     "crowdbench run env=selfplay algo=td3 encoder=gatedgcn":
         [["run", "env=selfplay", "algo=td3", "encoder=gatedgcn", "env.n_agents=4", *SELFPLAY, "out={selfplay}"]],
     "crowdbench run env=selfplay env.n_agents=16 env.scenario=square env.background=students001":
@@ -181,6 +184,7 @@ PRODUCERS = {"run": "crowdbench run algo=td3 encoder=gatedgcn", "out": "crowdben
              "sweep": "crowdbench run -m experiment=leaderboard",
              "selfplay": "crowdbench run env=selfplay algo=td3 encoder=gatedgcn"}
 SUBMITS = ("crowdbench submit SWEEP_DIR", "crowdbench submit RUN --name NAME --entry LABEL")
+CHECKS = {"crowdbench leaderboard --check": "crowdbench leaderboard"}
 
 
 def prerequisites(command: str) -> list[str]:
@@ -189,6 +193,8 @@ def prerequisites(command: str) -> list[str]:
     deps = [c for key, c in PRODUCERS.items() if "{" + key + "}" in text and c != command]
     if "{lb}" in text and command not in SUBMITS:
         deps += SUBMITS
+    if command in CHECKS:  # it compares with the tables another command wrote
+        deps.append(CHECKS[command])
     return deps
 
 
