@@ -203,3 +203,20 @@ def _cmdline(pid: int) -> str:
         return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
     except OSError:
         return ""
+
+
+def test_only_keeps_the_other_rows_when_their_results_are_out_of_date(tmp_path, ledger):
+    """After a change to the evaluation code every cached fingerprint is out of date: `--only straight`
+    re-evaluated straight and dropped every other row from the tables (they are shown as on disk)."""
+    root = tmp_path / "lb"
+    baselines(root)
+    table = (root / "README.md").read_text()
+    path = root / "results" / "orca" / "results.json"
+    res = json.loads(path.read_text())
+    res["harness"]["fingerprint"] = "0" * 64  # as if computed by other evaluation code
+    path.write_text(json.dumps(res, indent=1) + "\n")
+    log: list[str] = []
+    assert run(root, only=["straight"], force=True, log=log.append, **FAST) == 0, log
+    assert (root / "README.md").read_text() == table  # the ORCA row as it was
+    assert any(m.startswith("note: 1 cached result(s) not selected, out of date") for m in log), log
+    assert json.loads(path.read_text())["harness"]["fingerprint"] == "0" * 64  # not re-evaluated, not rewritten

@@ -220,6 +220,10 @@ def _run(root: Path, only: list[str] | None = None, check: bool = False, force: 
             cached, why = (None, None) if check else read_cached(res_path, d.name, sub.kind, sub.data, fp)
             trusted = cached is not None and why is None
             if not check and (trusted and not force or not selected):
+                if cached is None and why == "out of date" and not selected:
+                    # --only: the other rows keep their results as on disk even when the code changed since
+                    # (only the named rows are re-evaluated; dropping the rest emptied the tables)
+                    cached = _committed(res_path)
                 if cached is not None:  # (unselected and not in the ledger: shown as committed, counted below)
                     results[name].append(cached)
                     if selected:
@@ -274,8 +278,8 @@ def _run(root: Path, only: list[str] | None = None, check: bool = False, force: 
     all_rejected = sorted(f"{m} (track {t})" if t else m for t, m in rejected)
     board = render_tracks(shown, scenes, episodes, [m for _, m in missing], all_rejected)
     if unverified:
-        log(f"note: {unverified} cached result(s) not selected and not written by this harness are shown as "
-            "they are on disk; a run without --only re-evaluates them (docs/submitting.md, Cache)")
+        log(f"note: {unverified} cached result(s) not selected, out of date or not written by this harness, are "
+            "shown as they are on disk; a run without --only re-evaluates them (docs/submitting.md, Cache)")
     log(f"leaderboard: {sum(map(len, results.values()))} results evaluated/cached on {len(tracks)} track(s), "
         f"{len(rejected)} rejected, {time.time() - t_all:.1f} s")
     if check:
