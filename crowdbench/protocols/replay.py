@@ -215,11 +215,11 @@ class ReplayProtocol(Protocol):
 
         scenes, episodes = scenes_of(cfg, self.scenes)
         sim = SimConfig.fields_of(cfg.env)
-        SimConfig(**sim)  # bad env values (the frame too, replaced by the policy's) are one-line errors
+        steps = SimConfig(**sim).time_limit  # bad env values (the frame too, replaced below) are one-line errors
         sim["frame"] = policy.frame
         humans = self.humans_of(cfg, strict)
         self.check_lists(scenes)  # the published lists, not look-alikes
-        bar = progress(scenes, SimConfig(**sim).time_limit) if progress else contextlib.nullcontext()
+        bar = progress(scenes, steps) if progress else contextlib.nullcontext()
         with bar as recorders:
             return evaluate(policy, scenes, episodes, out_dir=out, save_episodes=bool(cfg.eval.save_episodes),
                             sim_overrides=sim, meta={"seed": cfg.seed, "overrides": overrides},

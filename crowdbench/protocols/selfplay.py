@@ -124,6 +124,12 @@ def format_table(results: dict) -> str:
     return "\n".join(lines)
 
 
+def _evaluated(env_cfg) -> tuple[list[str], list[int] | None]:
+    """``env.eval_scenarios`` and ``env.eval_n_agents`` (None: the training count) as :func:`settings` takes them."""
+    counts = env_cfg.eval_n_agents
+    return list(env_cfg.eval_scenarios), None if counts is None else list(counts)
+
+
 class SelfPlayProtocol(Protocol):
     """Every agent acts from the policy (a robot checkpoint too: the transfer test); no leaderboard track.
     Its training probe is protocol v1's: a self-play policy is also a robot policy."""
@@ -143,17 +149,14 @@ class SelfPlayProtocol(Protocol):
     def check_run(self, cfg) -> None:
         """Every ``env.eval_scenarios`` x ``env.eval_n_agents`` setting can be placed: checked before training, so
         that e.g. 32 agents on the default 8 m square fail at once, not after a 30-minute run."""
-        e = cfg.env
         try:
-            settings(selfplay_config(e, frame="rotate"), list(e.eval_scenarios),
-                     None if e.eval_n_agents is None else list(e.eval_n_agents))
+            settings(selfplay_config(cfg.env, frame="rotate"), *_evaluated(cfg.env))
         except ValueError as err:
             raise ValueError(f"env.eval_n_agents / env.eval_scenarios: {err}") from None
 
     def run(self, policy, cfg, out: Path, overrides: list[str], strict: bool = True, progress=None) -> dict:
         e = cfg.env
-        return evaluate_selfplay(policy, selfplay_config(e, frame=policy.frame), list(e.eval_scenarios),
-                                 None if e.eval_n_agents is None else list(e.eval_n_agents), int(e.eval_episodes),
+        return evaluate_selfplay(policy, selfplay_config(e, frame=policy.frame), *_evaluated(e), int(e.eval_episodes),
                                  int(e.eval_seed), out_dir=out, meta={"seed": cfg.seed, "overrides": overrides})
 
     def format_table(self, results: dict) -> str:
