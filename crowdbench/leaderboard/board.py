@@ -101,13 +101,13 @@ def missing_line(name: str, track: str) -> str:
     return f"{name} ({track}): results missing or out of date (`crowdbench leaderboard --only {name} --tracks {track}`)"
 
 
-def unevaluated(root: Path, by_track: dict[str, list[dict]]) -> list[str]:
-    """:func:`missing_line` of every learned submission under ``root`` and every track it fits that
-    ``by_track`` holds no result of, in the order a run lists them (submission, then track)."""
+def unevaluated(root: Path, by_track: dict[str, list[dict]], tracks=TRACK_ORDER) -> list[str]:
+    """:func:`missing_line` of every learned submission under ``root`` and every one of ``tracks`` it fits
+    that ``by_track`` holds no result of, in the order a run lists them (submission, then track)."""
     subs = {d.name: yaml.safe_load((d / "submission.yaml").read_text()) or {}
             for d in sorted((Path(root) / "submissions").iterdir()) if (d / "submission.yaml").is_file()}
     have = {t: {r["meta"]["submission"] for r in by_track.get(t, [])} for t in TRACK_ORDER}
-    return [missing_line(n, t) for n, d in subs.items() if d.get("kind") == "learned" for t in TRACK_ORDER
+    return [missing_line(n, t) for n, d in subs.items() if d.get("kind") == "learned" for t in tracks
             if TRACKS[t].fits("learned", bool(d.get("privileged"))) and n not in have[t]]
 
 
