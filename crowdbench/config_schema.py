@@ -287,6 +287,9 @@ class TrainConfig:
     # linearly to 0 over pretrain_bc_updates gradient updates (0 = constant)
     pretrain_bc_weight: float = bounded(0.0, ge=0)
     pretrain_bc_updates: int = bounded(20000, ge=0)
+    # DAgger (crowdbench/algos/pretrain.py dagger): rounds of the student acting and the expert labelling
+    pretrain_dagger_rounds: int = bounded(0, ge=0)
+    pretrain_dagger_frames: int = bounded(5000, ge=1)  # env steps per round
 
 
 @dataclass

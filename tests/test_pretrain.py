@@ -268,3 +268,52 @@ def test_a_privileged_or_mismatched_teacher_is_refused(tmp_path):
     cfg.train.pretrain_checkpoint = None
     with pytest.raises(ValueError, match="needs train.pretrain_checkpoint"):
         expert_policy(cfg, env)
+
+
+def test_dagger_labels_the_states_the_student_visits_with_the_experts_action():
+    """collect_corrections: the env is driven by the student's evaluated action, and each visited state is
+    labelled with ORCA's action there, stepped by hand on the same episodes; success counts the ended ones."""
+    from crowdbench.algos.pretrain import collect_corrections, expert_policy, policy_action
+
+    cfg, env, learner = make("td3")
+    expert = expert_policy(cfg)
+    T = 40
+    data, success = collect_corrections(env, learner.actor, "deterministic", expert, 8 * T)
+    torch.manual_seed(0)
+    again = make_env(cfg, progress_reward=cfg.train.progress_reward)
+    td, labels, ended, arrived = again.reset(), [], 0, 0
+    for _ in range(T):
+        labels.append(expert.act(td.select(OBS)))
+        with torch.no_grad():
+            td.set(ACTION, policy_action(learner.actor, td, "deterministic"))
+        stepped, td = again.step_and_maybe_reset(td)
+        done = stepped["next", GROUP, "done"].reshape(-1)
+        ended += int(done.sum())
+        arrived += int((stepped["next", GROUP, "info", "outcome"].reshape(-1)[done] == 1).sum())
+    want = torch.stack(labels, 1)  # [B, T, 1, 2]: running agents only in data; one robot never frozen
+    assert torch.equal(data[ACTION].reshape(want.shape), want)
+    assert ended > 0 and success == pytest.approx(arrived / ended)
+    assert not torch.equal(data[ACTION], policy_action(learner.actor, data, "deterministic").detach())
+
+
+def test_dagger_rounds_aggregate_and_reclone(tmp_path):
+    """dagger(): each round adds the student's labelled states (distinct episode ids) and re-clones the actor
+    on everything; the CLI logs each round's student success; a tiny run trains end to end with it."""
+    from crowdbench.algos.pretrain import collect_demonstrations, dagger, expert_policy
+
+    cfg, env, learner = make("td3", "train.pretrain_dagger_rounds=2", "train.pretrain_dagger_frames=160",
+                             "train.pretrain_epochs=2")
+    demos = collect_demonstrations(cfg, env, 320)
+    learner.warm_start(demos)
+    before = [p.detach().clone() for p in learner.actor.parameters()]
+    data, logs = dagger(cfg, env, learner.actor, "deterministic", expert_policy(cfg), demos)
+    assert len(data) == len(demos) + 2 * 160 and logs["dagger_transitions"] == len(data)
+    assert len(data[EPISODE].unique()) > len(demos[EPISODE].unique())
+    assert not torch.isin(data[EPISODE][len(demos):], demos[EPISODE]).any()
+    assert any(not torch.equal(a, b) for a, b in zip(before, learner.actor.parameters(), strict=True))
+    assert {"dagger_0_student_success", "dagger_1_action_mse"} <= set(logs)
+    args = ["run", *SMALL["td3"], *TINY, "train.pretrain=orca", "train.pretrain_frames=128", "train.pretrain_epochs=1",
+            "train.pretrain_dagger_rounds=1", "train.pretrain_dagger_frames=64", "train.pretrain_bc_weight=1",
+            "train.total_frames=256", "eval.episodes=1", "eval.scenes=[hotel]", f"out={tmp_path}"]
+    assert main(args) == 0
+    assert read_log(tmp_path, "dagger_0_student_success") and read_log(tmp_path, "dagger_transitions")[0][1] == 192

@@ -63,6 +63,10 @@ class Algorithm:
         """Imitation before RL on demonstrations (``crowdbench/algos/pretrain.py``)."""
         raise NotImplementedError(f"algo={self.name} has no imitation warm start")
 
+    def clone_from(self, data: TensorDictBase) -> None:
+        """DAgger's aggregated data (``train.pretrain_dagger_rounds``) replaces the demonstrations that a
+        cloning term during RL draws from; an algorithm without such a term ignores it."""
+
     # ---- state
     def state_dict(self) -> dict:
         raise NotImplementedError

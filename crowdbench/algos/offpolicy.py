@@ -264,6 +264,10 @@ class OffPolicyAlgorithm(Algorithm):
             self.cloning = DemoCloning(self.cfg, demos)
         return logs
 
+    def clone_from(self, data) -> None:
+        if self.cloning is not None:
+            self.cloning = DemoCloning(self.cfg, data)
+
     def update(self, sample, n: int) -> dict[str, float]:
         """Gradient step ``n`` on a sampled batch: critics always; actor (and temperature) and targets
         every ``policy_delay`` steps. Writes the new priorities to ``sample["td_error"]``."""

@@ -25,8 +25,9 @@ import torch
 import torch.nn.functional as F
 from tensordict import TensorDict, TensorDictBase
 
-from crowdbench.algos.multiagent import agent_transitions
+from crowdbench.algos.multiagent import agent_transitions, finished_episodes
 from crowdbench.algos.nstep import STEPS, n_step
+from crowdbench.envs.core import SUCCESS
 from crowdbench.envs.policy import ACTION, GROUP, OBS
 from crowdbench.models.heads import OBS_KEYS
 
@@ -34,6 +35,7 @@ EXPERTS = ("orca", "checkpoint")
 RETURN = (GROUP, "return_to_go")  # discounted, within the agent's episode, no bootstrap
 COMPLETE = (GROUP, "episode_complete")  # the agent's episode ended before the collection did
 EPISODE = (GROUP, "episode")  # an id per agent episode: the held-out split is by episode
+LABEL = (GROUP, "expert_action")  # DAgger: the expert's action in a state the student visited
 FIT_SAMPLE = 4096  # transitions the fit-set errors are measured on
 TRANSITION = [OBS, ACTION, ("next", GROUP, "observation"), ("next", GROUP, "reward"), ("next", GROUP, "done"),
               ("next", GROUP, "terminated")]
@@ -237,6 +239,52 @@ def imitate(cfg, actor, kind: str, demos: TensorDictBase, critics=(), prepare=No
     for module, params, out_key in critics:
         logs.update(regress_values(module, params, fit, held, out_key, prepare=prepare, **opts))
     return logs
+
+
+@torch.no_grad()
+def collect_corrections(env, actor, kind: str, expert, frames: int) -> tuple[TensorDict, float]:
+    """One DAgger round (Ross et al. 2011): ``frames`` env steps (whole batches) of the student ``actor``
+    acting on ``env`` by its evaluated action, every visited state labelled with ``expert``'s action.
+    Returns the labelled states as cloning data (:data:`OBS`, the label as :data:`ACTION`, :data:`EPISODE`)
+    and the success rate of the student's episodes that ended in the round (nan if none did)."""
+
+    def act(td):
+        td.set(LABEL, expert.act(td.select(OBS)))  # the expert reads the world's current state: label first
+        td.set(ACTION, policy_action(actor, td, kind))
+        return td
+
+    steps = -(-int(frames) // int(env.batch_size[0]))
+    batch = env.rollout(steps, act, break_when_any_done=False)
+    batch.set(EPISODE, episode_ids(batch["next", GROUP, "done"]))
+    outcomes, _ = finished_episodes(batch, (GROUP, "reward"))
+    success = sum(o == SUCCESS for o in outcomes) / len(outcomes) if outcomes else float("nan")
+    data = agent_transitions(batch, [OBS, LABEL, EPISODE, ("next", GROUP, "done")])
+    data.set(ACTION, data.pop(LABEL))
+    return data.select(OBS, ACTION, EPISODE), success
+
+
+def dagger(cfg, env, actor, kind: str, expert, demos: TensorDictBase) -> tuple[TensorDict, dict[str, float]]:
+    """``train.pretrain_dagger_rounds`` rounds of :func:`collect_corrections` after the warm start's cloning:
+    each round's labelled states join the data (the demonstrations first) and the actor is cloned again on
+    all of it. Why: cloning alone fits the expert on the expert's states, and the student's small errors
+    lead it into states no demonstration covers (measured: docs/value.md). Returns the aggregated data
+    (what the cloning term of RL then draws from) and the scalars to log."""
+    t = cfg.train
+    generator = torch.Generator().manual_seed(int(cfg.seed) + 2)  # apart from imitate()'s stream
+    data = demos.select(OBS, ACTION, EPISODE)
+    logs = {}
+    for r in range(int(t.pretrain_dagger_rounds)):
+        new, success = collect_corrections(env, actor, kind, expert, int(t.pretrain_dagger_frames))
+        offset = int(data[EPISODE].max()) + 1 if len(data) else 0  # keep the episode ids distinct
+        new.set(EPISODE, new[EPISODE] + offset)
+        logs[f"dagger_{r}_student_success"] = success
+        logs[f"dagger_{r}_action_mse"] = action_mse(actor, new, kind)  # on the student's own states
+        data = torch.cat([data, new])
+        fit, held = split_demos(data, float(t.pretrain_heldout), generator)
+        behaviour_clone(actor, fit, held, kind, epochs=int(t.pretrain_epochs), batch=int(t.pretrain_batch),
+                        lr=float(t.pretrain_lr), generator=generator)
+    logs["dagger_transitions"] = float(len(data))
+    return data, logs
 
 
 class DemoCloning:

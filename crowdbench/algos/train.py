@@ -139,15 +139,20 @@ def load_resume_state(cfg: DictConfig, ckpt_path: Path, fields: tuple[str, ...])
 def warm_start(cfg: DictConfig, env, algo: Algorithm, logger, write=None) -> dict[str, float]:
     """``train.pretrain``: demonstrations on the training env, then the algorithm's imitation warm start;
     its scalars are logged at frame 0 (``crowdbench/algos/pretrain.py``)."""
-    from crowdbench.algos.pretrain import collect_demonstrations
+    from crowdbench.algos.pretrain import collect_demonstrations, dagger, expert_policy
 
     t = cfg.train
     if type(algo).warm_start is Algorithm.warm_start:
         raise ValueError(f"train.pretrain={t.pretrain}: algo={algo.name} has no imitation warm start")
     start = time.perf_counter()
-    demos = collect_demonstrations(cfg, env, t.pretrain_frames)
+    expert = expert_policy(cfg, env)
+    demos = collect_demonstrations(cfg, env, t.pretrain_frames, expert)
     collected = time.perf_counter()
     logs = algo.warm_start(demos)
+    if int(t.get("pretrain_dagger_rounds", 0)) > 0:
+        data, more = dagger(cfg, env, algo.actor, algo.actor_kind, expert, demos)
+        algo.clone_from(data)
+        logs.update(more)
     logs["pretrain_collect_s"] = collected - start
     logs["pretrain_fit_s"] = time.perf_counter() - collected
     for k, v in logs.items():
@@ -156,6 +161,10 @@ def warm_start(cfg: DictConfig, env, algo: Algorithm, logger, write=None) -> dic
         took = logs["pretrain_collect_s"] + logs["pretrain_fit_s"]
         write(f"warm start ({t.pretrain}, {len(demos):,} transitions, {took:.0f} s): held-out action MSE "
               f"{logs['pretrain_heldout_action_mse_before']:.4f} -> {logs['pretrain_heldout_action_mse']:.4f}")
+        rounds = [logs[k] for k in sorted(logs) if k.startswith("dagger_") and k.endswith("_student_success")]
+        if rounds:
+            write(f"DAgger ({len(rounds)} rounds, {logs['dagger_transitions']:,.0f} labelled transitions): the "
+                  f"student's success per round {', '.join(f'{x:.2f}' for x in rounds)}")
     return logs
 
 
