@@ -220,3 +220,16 @@ def test_only_keeps_the_other_rows_when_their_results_are_out_of_date(tmp_path, 
     assert (root / "README.md").read_text() == table  # the ORCA row as it was
     assert any(m.startswith("note: 1 cached result(s) not selected, out of date") for m in log), log
     assert json.loads(path.read_text())["harness"]["fingerprint"] == "0" * 64  # not re-evaluated, not rewritten
+
+
+def test_check_only_lists_the_rows_without_results_as_the_run_did(tmp_path, ledger):
+    """`--check --only straight` rendered the tables without the "Not evaluated" lines of the entries that
+    have no results (the run that wrote the tables lists them): every such check failed on the README."""
+    root = tmp_path / "lb"
+    baselines(root)
+    (root / "results" / "orca" / "results.json").unlink()
+    log: list[str] = []
+    assert run(root, only=["straight"], log=log.append, **FAST) == 0, log
+    assert "orca (v1): results missing or out of date" in (root / "README.md").read_text()
+    log.clear()
+    assert run(root, only=["straight"], check=True, log=log.append, **FAST) == 0, log

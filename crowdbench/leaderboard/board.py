@@ -214,8 +214,10 @@ def _run(root: Path, only: list[str] | None = None, check: bool = False, force: 
                 break
             if check and not selected:  # --check --only: the other rows as committed, the named ones re-evaluated
                 committed = _committed(res_path)
-                if committed is not None:  # (none: a full --check would evaluate it, not list it as missing)
+                if committed is not None:
                     results[name].append(committed)
+                else:  # listed as the run that wrote the tables lists it (a full --check evaluates it)
+                    missing.append((name, missing_line(d.name, name)))
                 continue
             cached, why = (None, None) if check else read_cached(res_path, d.name, sub.kind, sub.data, fp)
             trusted = cached is not None and why is None
