@@ -133,7 +133,7 @@ def test_the_track_table_rendered_from_hand_made_results():
     head = next(ln for ln in lines if ln.startswith("| # |"))
     assert head.split(" | ")[4:] == ["success", "collision", "timeout", "nav time s", "agent dangers", "dangers",
                                      "min agent clearance m", "all arrived", "any collision", "episode s |"]
-    rows = [ln for ln in lines if ln.startswith("| 1 |") or ln.startswith("| 2 |")]
+    rows = [ln for ln in lines if ln.startswith(("| 1 |", "| 2 |"))]
     assert rows[0].startswith("| 1 | Self-play TD3 | selfplay | 1 | 0.995 [0.945, 1.000] | 0.005 [0.000, 0.025] |")
     assert rows[1].startswith("| 2 | ORCA | — | 1 | 0.980 [0.930, 1.000] |") and "| 0.980 [0.930, 1.000] |" in rows[1]
     assert not any("Robot TD3" in ln for ln in lines)

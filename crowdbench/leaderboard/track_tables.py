@@ -93,8 +93,7 @@ def track_table(track: Track, results: list[dict], scenes: list[str]) -> list[st
     L = [f"## `{track.name}`: {track.title}", "",
          f"Ranked (#) by success, the first column. Each cell: {where}; mean [95% interval] of a run, or over "
          "several seeds (two-level bootstrap: seeds, then episodes)."
-         + ("" if track.privileged_ok else " The oracle does not apply: these humans react to the robot, so "
-            "their future is not known in advance."), "", f"![{track.name}, ranked](plots/{track.name}.png)", ""]
+         + ("" if track.privileged_ok else " " + track.evaluator.oracle_note), "", f"![{track.name}, ranked](plots/{track.name}.png)", ""]
     head = ["#", "method", "trained on", "seeds", *(m.column for m in cols)]
     L += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for rank, g in ranked(groups, lambda g: group_cell(g, track, "success_rate", 3)[0]):

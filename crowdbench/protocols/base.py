@@ -85,6 +85,7 @@ class Protocol:
     # home on every track of the protocol (self-play trains on mixed crossings of any agent count)
     home: str | None = None
     danger_metric = "dangers_per_episode"  # the x-axis of the tracks' success-against-dangers plot
+    oracle_note = "The oracle does not apply: these humans react to the robot, so their future is not known in advance."
 
     def selects(self, env_cfg) -> bool:
         """Whether an ``env`` config without ``env.protocol`` means this protocol (default: only when named)."""

@@ -178,6 +178,7 @@ class SelfPlayProtocol(Protocol):
     home = HOME
     privileged_ok = False  # the oracle plans against replayed humans, not against agents that react
     danger_metric = "agent_dangers_per_agent"
+    oracle_note = "The oracle does not apply: every agent reacts to the others, so their future is not known in advance."
 
     def selects(self, env_cfg) -> bool:
         return env_name(env_cfg) == self.world
