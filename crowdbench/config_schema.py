@@ -86,6 +86,7 @@ class SelfPlayEnvConfig(SimEnvConfig):
     robot_visible: bool = True
     human_v_pref: float = bounded(1.0, gt=0)
     obs_slots: int = bounded(0, ge=0)
+    scale_geometry: bool = False
     eval_scenarios: list[str] = field(default_factory=lambda: ["circle", "square"], metadata={"min_len": 1,
                                         "choices": ("circle", "square", "mixed")})
     eval_n_agents: list[int] | None = field(default=None, metadata={"min_len": 1, "ge": 1})

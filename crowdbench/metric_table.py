@@ -94,13 +94,15 @@ METRICS: tuple[Metric, ...] = (
            range=UNIT, **SOCIAL),
     # self-play (docs/selfplay.md): per agent, then per episode (results.json's "episode")
     Metric("agent_dangers_per_agent", "Dangers between agents per agent", "agent dangers", range=COUNT,
-           protocols=(SELFPLAY,), shown_in=(IN_SELFPLAY,)),
-    Metric("dangers_per_agent", "Dangers with any body per agent", "dangers", range=COUNT, protocols=(SELFPLAY,)),
-    Metric("min_agent_clearance", "Minimum agent-agent clearance (m)", "min agent clearance m", protocols=(SELFPLAY,)),
+           protocols=(SELFPLAY,), shown_in=(IN_SELFPLAY, IN_TRACKS)),
+    Metric("dangers_per_agent", "Dangers with any body per agent", "dangers", range=COUNT, protocols=(SELFPLAY,),
+           shown_in=(IN_TRACKS,)),
+    Metric("min_agent_clearance", "Minimum agent-agent clearance (m)", "min agent clearance m", protocols=(SELFPLAY,),
+           shown_in=(IN_TRACKS,)),
     Metric("all_arrived_rate", "Episodes in which every agent arrived", "all arrived", range=UNIT, interval="wilson",
-           protocols=(SELFPLAY,), shown_in=(IN_SELFPLAY,)),
+           protocols=(SELFPLAY,), shown_in=(IN_SELFPLAY, IN_TRACKS)),
     Metric("any_collision_rate", "Episodes with a collision", "any collision", range=UNIT, interval="wilson",
-           protocols=(SELFPLAY,)),
+           protocols=(SELFPLAY,), shown_in=(IN_TRACKS,)),
     Metric("collisions_per_episode", "Collided agents per episode", "collisions/ep", range=COUNT,
            protocols=(SELFPLAY,)),
     Metric("colliding_pairs_per_episode", "Colliding agent pairs per episode", "pairs/ep", range=COUNT,
@@ -108,7 +110,7 @@ METRICS: tuple[Metric, ...] = (
     Metric("agent_dangers_per_episode", "Dangers between agents per episode", "agent dangers/ep", range=COUNT,
            protocols=(SELFPLAY,)),
     Metric("episode_time_s", "Episode time (s, episodes in which every agent arrived)", "episode s", range=COUNT,
-           protocols=(SELFPLAY,), shown_in=(IN_SELFPLAY,)),
+           protocols=(SELFPLAY,), shown_in=(IN_SELFPLAY, IN_TRACKS)),
 )
 
 

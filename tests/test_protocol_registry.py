@@ -119,8 +119,12 @@ def test_every_builtin_protocol_round_trips_through_the_registry():
         for track in p.tracks:
             assert TRACKS[track.name] is track and track.evaluator is p
             env = compose(list(track.config_overrides)).env  # the baselines' config of the track is the track's
-            assert protocols.of_config(env) is p and trained_track({"env": dict(env)}) == track.name
-    assert list(TRACK_ORDER) == ["v1", "v2-orca", "v2-sfm", "crowdnav-circle5", "crowdnav-circle20", "crowdnav-square5"]
+            # (a protocol with a home, self-play: every run trained in it is at home on all its tracks)
+            assert protocols.of_config(env) is p and trained_track({"env": dict(env)}) == (p.home or track.name)
+            assert track.is_home(trained_track({"env": dict(env)}))
+    assert list(TRACK_ORDER) == ["v1", "v2-orca", "v2-sfm", "crowdnav-circle5", "crowdnav-circle20", "crowdnav-square5",
+                                 *(f"selfplay-{s}{n}" for s in ("circle", "square") for n in (4, 8, 16, 32)),
+                                 "selfplay-circle8-orca4"]
 
 
 # an env name compared or used as a key: env_name(...) ==, .name == "replay", {"selfplay": ...}, is_selfplay

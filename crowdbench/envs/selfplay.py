@@ -46,9 +46,17 @@ class SelfPlayConfig(SimConfig):
     # each agent observes its obs_slots nearest bodies (0 = every slot): the observation, and the graph an
     # encoder builds from it, stay linear in the number of agents (World.observe)
     obs_slots: int = 0
+    # square crossing of more agents than the sides hold (n * min_spacing > 2 * width): widen the square to
+    # fit them and lengthen the time limit in proportion (the same time per metre of side), instead of failing
+    scale_geometry: bool = False
 
     def __post_init__(self):
         super().__post_init__()
+        if self.scale_geometry and self.scenario != "circle":
+            need = (self.n_agents + self.n_humans) * self.min_spacing / 2
+            if need > self.square_width:  # (idempotent: a scaled config is not scaled again by replace())
+                self.time_limit = math.ceil(self.time_limit * need / self.square_width)
+                self.square_width = need
         if self.scenario not in SCENARIOS:
             raise ValueError(f"unknown self-play scenario {self.scenario!r}; valid: {', '.join(SCENARIOS)}")
         if self.done_agents not in DONE_AGENTS:
@@ -64,7 +72,7 @@ class SelfPlayConfig(SimConfig):
             # random sequential placement on the 4 sides jams well before they are full
             raise ValueError(f"{self.n_agents} agents {self.min_spacing} m apart do not fit on the sides of a "
                              f"{self.square_width} m square (need n * min_spacing <= 2 * width); "
-                             "raise env.square_width")
+                             "raise env.square_width or set env.scale_geometry=true")
         if self.min_spacing <= 2 * self.robot_radius:
             raise ValueError(f"min_spacing must exceed two robot radii ({2 * self.robot_radius} m)")
         if self.n_humans < 0:

@@ -108,7 +108,7 @@ def unevaluated(root: Path, by_track: dict[str, list[dict]], tracks=TRACK_ORDER)
             for d in sorted((Path(root) / "submissions").iterdir()) if (d / "submission.yaml").is_file()}
     have = {t: {r["meta"]["submission"] for r in by_track.get(t, [])} for t in TRACK_ORDER}
     return [missing_line(n, t) for n, d in subs.items() if d.get("kind") == "learned" for t in tracks
-            if TRACKS[t].fits("learned", bool(d.get("privileged"))) and n not in have[t]]
+            if TRACKS[t].fits("learned", bool(d.get("privileged")), d.get("track", "v1")) and n not in have[t]]
 
 
 def run(root: Path = DEFAULT_ROOT, only: list[str] | None = None, check: bool = False, force: bool = False,
@@ -203,7 +203,8 @@ def _run(root: Path, only: list[str] | None = None, check: bool = False, force: 
             continue
         for name in TRACK_ORDER:
             track = TRACKS[name]
-            if not track.fits(sub.kind, sub.data.get("privileged", False)) or (check and name not in tracks):
+            origin = sub.data.get("track", "v1") if sub.kind == "learned" else None
+            if not track.fits(sub.kind, sub.data.get("privileged", False), origin) or (check and name not in tracks):
                 continue
             res_path = root / "results" / d.name / track.results_file
             selected = (only is None or d.name in only) and name in tracks

@@ -16,6 +16,7 @@ import matplotlib.pyplot as plt
 from crowdbench.envs.protocol import PAPER_SCENES, PROTOCOL_VERSION
 from crowdbench.leaderboard.render import group_results, group_stat, label, success_score
 from crowdbench.leaderboard.stats import ranked
+from crowdbench.metric_table import metric
 from crowdbench.viz.palette import distinct_colours
 
 
@@ -81,9 +82,13 @@ def v1_plot(results: list[dict], scenes: list[str], out: Path, colours: dict | N
     _save(fig, out)
 
 
-def _tradeoff(ax, success: list[tuple], dangers: list[tuple]) -> None:
-    """Success against dangers per episode, one point per entry (its rank number) with both intervals: the
-    safest successful entries sit top left."""
+def metric_title(key: str) -> str:
+    return metric(key).title
+
+
+def _tradeoff(ax, success: list[tuple], dangers: list[tuple], metric: str = "dangers_per_episode") -> None:
+    """Success against dangers (``metric``: per episode; self-play: between agents, per agent), one point per
+    entry (its rank number) with both intervals: the safest successful entries sit top left."""
     for rank, (s, d) in enumerate(zip(success, dangers, strict=True), 1):
         if s[1] is None or d[1] is None:
             continue
@@ -91,7 +96,8 @@ def _tradeoff(ax, success: list[tuple], dangers: list[tuple]) -> None:
         yerr = [[max(s[1] - s[2], 0.0)], [max(s[3] - s[1], 0.0)]] if s[2] is not None else None
         ax.errorbar(d[1], s[1], xerr=xerr, yerr=yerr, fmt="o", color=s[4], ms=4, elinewidth=0.8, capsize=1.5)
         ax.annotate(str(rank), (d[1], s[1]), textcoords="offset points", xytext=(3, 3), fontsize=6.5)
-    ax.set_xlabel("dangers per episode (steps with 0 <= d < 0.2 m)", fontsize=8)
+    ax.set_xlabel("dangers per episode (steps with 0 <= d < 0.2 m)" if metric == "dangers_per_episode" else
+                  f"{metric_title(metric).lower()} (steps with 0 <= d < 0.2 m)", fontsize=8)
     ax.set_ylabel("success", fontsize=8)
     ax.set_ylim(-0.03, 1.05)
     ax.set_xlim(left=0)
@@ -103,17 +109,17 @@ def _tradeoff(ax, success: list[tuple], dangers: list[tuple]) -> None:
 def track_plot(track, results: list[dict], out: Path, colours: dict | None = None) -> None:
     """Track ``track``'s ranked success (the entries of its table) and each entry's success against its
     dangers per episode, to ``out``."""
-    from crowdbench.leaderboard.track_tables import group_cell, headline_scenes, trained_on
+    from crowdbench.leaderboard.track_tables import at_home, group_cell, headline_scenes
 
-    groups = group_results([r for r in results if trained_on(r) in (None, track.name)])
+    groups = group_results([r for r in results if at_home(r, track)])
     colours = colours or colour_map(results)
     order = ranked(groups, lambda g: group_cell(g, track, "success_rate", 3)[0])
     rows = _rows(order, lambda g: headline_scenes(g[0], track), "success_rate", colours)
-    dangers = _rows(order, lambda g: headline_scenes(g[0], track), "dangers_per_episode", colours)
+    dangers = _rows(order, lambda g: headline_scenes(g[0], track), track.evaluator.danger_metric, colours)
     fig, (ax, tr) = plt.subplots(1, 2, figsize=(11, max(0.24 * len(groups) + 1.1, 3.2)),
                                  gridspec_kw={"width_ratios": (3, 2)})
-    where = "average over the paper scenes" if track.replay else f"CrowdNav {track.setting}"
+    where = "average over the paper scenes" if track.replay else f"{track.evaluator.short} {track.setting}"
     _bars(ax, rows, f"{track.name}: {track.title}\nsuccess, {where}, ranked", "success (95% interval)", (0, 1.08))
-    _tradeoff(tr, rows, dangers)
+    _tradeoff(tr, rows, dangers, track.evaluator.danger_metric)
     fig.tight_layout()
     _save(fig, out)

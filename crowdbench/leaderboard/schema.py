@@ -22,9 +22,10 @@ from crowdbench.algos.registry import names as algo_names
 from crowdbench.envs.lookahead import MODELS as LOOKAHEAD_MODELS
 from crowdbench.envs.lookahead import PRIVILEGED_MODELS
 from crowdbench.leaderboard.text import bad_char, one_line, short
-from crowdbench.leaderboard.tracks import TRACK_ORDER, trained_track
+from crowdbench.leaderboard.tracks import trained_track
 from crowdbench.models.value_nets import NETS as VALUE_NETS
 from crowdbench.outputs import pid_dir
+from crowdbench.protocols import homes
 
 PACKAGE_DIR = Path(__file__).resolve().parents[1]
 REPO_DIR = PACKAGE_DIR.parent
@@ -92,7 +93,7 @@ SCHEMA: dict[str, tuple[tuple, tuple, str]] = {
     "encoder_entry_points": ((str,), (), "entry-point group to load the encoder from, e.g. crowdbench.encoders"),
     "algo": ((str,), ("learned",), "the training algorithm (crowdbench.algos registry): td3 | ddpg | sac | ppo | value"),
     "experiment": ((str,), (), "the Hydra experiment config the run was trained with, e.g. leaderboard"),
-    "track": ((str,), (), "the track the entry was trained on (default v1): " + " | ".join(TRACK_ORDER)),
+    "track": ((str,), (), "the track the entry was trained on (default v1; selfplay: self-play): " + " | ".join(homes())),
     "overrides": ((dict, list), (), "baseline/oracle parameters {key: value}; learned: the training overrides"),
     "authors": ((list, str), KINDS, "list of authors"),
     "link": ((str,), (), "paper or code URL"),
@@ -212,8 +213,8 @@ def validate_schema(path: Path, data) -> dict:
     if kind == "baseline" and data["policy"] not in BASELINE_POLICIES:
         raise SubmissionError(path, "policy", f"{short(data['policy'])} is not a baseline; valid: "
                                               f"{', '.join(BASELINE_POLICIES)}")
-    if kind == "learned" and data.get("track", "v1") not in TRACK_ORDER:
-        raise SubmissionError(path, "track", f"{short(data['track'])} is not a track; valid: {', '.join(TRACK_ORDER)}")
+    if kind == "learned" and data.get("track", "v1") not in homes():
+        raise SubmissionError(path, "track", f"{short(data['track'])} is not a track; valid: {', '.join(homes())}")
     if kind == "learned" and data["algo"] not in algo_names():
         raise SubmissionError(path, "algo", f"{short(data['algo'])} is not one of {', '.join(algo_names())}")
     if kind != "learned":

@@ -34,7 +34,7 @@ from crowdbench.leaderboard.sandbox import DEFAULT_LIMITS, Limits
 from crowdbench.leaderboard.schema import SCHEMA, link_problem
 from crowdbench.leaderboard.site_media import SCENE, entry_media
 from crowdbench.leaderboard.stats import ranked
-from crowdbench.leaderboard.track_tables import group_cell, trained_on
+from crowdbench.leaderboard.track_tables import at_home, group_cell, origin_rank, trained_on
 from crowdbench.leaderboard.tracks import TRACK_ORDER, TRACKS, units
 from crowdbench.metric_table import IN_TRACKS, columns, metric, ordered
 
@@ -135,11 +135,10 @@ class Site:
 
     def track_section(self, name: str) -> list[str]:
         track, results = TRACKS[name], self.by_track[name]
-        order = ranked(group_results([r for r in results if trained_on(r) in (None, name)]),
+        order = ranked(group_results([r for r in results if at_home(r, track)]),
                        lambda g: group_cell(g, track, "success_rate", 3)[0])
         cols = table_columns(units(track, self.scenes))
-        where = "the average over the four paper scenes" if track.replay else \
-            f"CrowdNav's test cases of {track.setting}"
+        where = "the average over the four paper scenes" if track.replay else track.evaluator.where(track)
         L = [f'<section class="track" id="track-{e(name)}">', f"<h2><code>{e(name)}</code>: {e(track.title)}</h2>",
              (f"<p>Ranked (#) by success on {e(where)}: baselines, the oracle where it applies and the entries "
               "trained on this track. Each cell: mean [95% interval] of a run, or over several seeds of one entry "
@@ -162,9 +161,9 @@ class Site:
                     per.setdefault((r["meta"]["entry"], trained_on(r)), {}).setdefault(name, []).append(r)
         if not per:
             return []
-        tracks = list(self.by_track)
+        tracks = [t for t, rs in self.by_track.items() if any(trained_on(r) for r in rs)]
         rows = []
-        for (entry, origin), got in sorted(per.items(), key=lambda kv: (TRACK_ORDER.index(kv[0][1]), kv[0][0].lower())):
+        for (entry, origin), got in sorted(per.items(), key=lambda kv: (origin_rank(kv[0][1]), kv[0][0].lower())):
             shown = label(next(iter(got.values())), escape=False)  # a privileged entry says so, as in its track's table
             cells = [f'<td data-sort="{e(entry)}"><a href="{self.href((entry, origin))}">{e(shown)}</a></td>',
                      td(None, origin),
@@ -172,7 +171,7 @@ class Site:
             for t in tracks:
                 g = sorted(got.get(t, []), key=lambda r: r["meta"]["submission"])
                 v, c = group_cell(g, TRACKS[t], "success_rate", 3) if g else (None, "—")
-                cells.append(td(v, c).replace("<td", '<td class="home"', 1) if t == origin else td(v, c))
+                cells.append(td(v, c).replace("<td", '<td class="home"', 1) if TRACKS[t].is_home(origin) else td(v, c))
             rows.append(cells)
         head = [("method", False), ("trained on", False), ("seeds", True), *((t, True) for t in tracks)]
         return ['<section id="transfer">', "<h2>Transfer: success of every learned entry on every track</h2>",
@@ -291,7 +290,7 @@ def key(r: dict) -> tuple[str, str | None]:
 
 
 def order(entry: tuple[str, str | None]) -> tuple:
-    return entry[0].lower(), TRACK_ORDER.index(entry[1]) if entry[1] else -1
+    return entry[0].lower(), origin_rank(entry[1]) if entry[1] else -1
 
 
 def training_command(data: dict) -> str | None:

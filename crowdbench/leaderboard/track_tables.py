@@ -19,11 +19,24 @@ from crowdbench.leaderboard.stats import ranked
 from crowdbench.leaderboard.text import md
 from crowdbench.leaderboard.tracks import TRACK_ORDER, TRACKS, Track
 from crowdbench.metric_table import IN_TRACKS, columns
+from crowdbench.protocols import homes
 
 
 def trained_on(r: dict) -> str | None:
     """The track a learned result's entry was trained on; None for baselines and the oracle."""
     return r["submission"].get("track", "v1") if r["meta"]["kind"] == "learned" else None
+
+
+def at_home(r: dict, track: Track) -> bool:
+    """Whether ``r`` is a row of ``track``'s table: a baseline, the oracle or an entry trained on the track
+    (or on its protocol's home: self-play)."""
+    origin = trained_on(r)
+    return origin is None or track.is_home(origin)
+
+
+def origin_rank(origin: str) -> int:
+    """The place of a training track in the tables' order (tracks, each protocol's home after its tracks)."""
+    return homes().index(origin)
 
 
 def headline(r: dict, track: Track, metric: str, digits: int) -> tuple[float | None, str]:
@@ -73,15 +86,14 @@ def above_the_oracle(by_track: dict[str, list[dict]]) -> list[str]:
 
 def track_table(track: Track, results: list[dict], scenes: list[str]) -> list[str]:
     """Baselines, the oracle (where it applies) and the entries trained on ``track``."""
-    home = [r for r in results if trained_on(r) in (None, track.name)]
+    home = [r for r in results if at_home(r, track)]
     groups = group_results(home)
     cols = columns(IN_TRACKS, home, track.label)
-    where = "average over the four paper scenes" if track.replay else f"CrowdNav's test cases of {track.setting}"
+    where = track.evaluator.where(track)
     L = [f"## `{track.name}`: {track.title}", "",
          f"Ranked (#) by success, the first column. Each cell: {where}; mean [95% interval] of a run, or over "
          "several seeds (two-level bootstrap: seeds, then episodes)."
-         + ("" if track.privileged_ok else " The oracle does not apply: these humans react to the robot, so "
-            "their future is not known in advance."), "", f"![{track.name}, ranked](plots/{track.name}.png)", ""]
+         + ("" if track.privileged_ok else " " + track.evaluator.oracle_note), "", f"![{track.name}, ranked](plots/{track.name}.png)", ""]
     head = ["#", "method", "trained on", "seeds", *(m.column for m in cols)]
     L += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for rank, g in ranked(groups, lambda g: group_cell(g, track, "success_rate", 3)[0]):
@@ -100,11 +112,13 @@ def transfer_table(by_track: dict[str, list[dict]]) -> list[str]:
         for r in results:
             if trained_on(r) is not None:
                 entries.setdefault((r["meta"]["entry"], trained_on(r)), {}).setdefault(name, []).append(r)
-    tracks = [t for t in TRACK_ORDER if t in by_track]
+    # a track no learned entry was evaluated on (self-play before its first submission) has no column
+    tracks = [t for t in TRACK_ORDER if t in by_track and any(trained_on(r) for r in by_track[t])]
     head = ["method", "trained on", "seeds", *(f"`{t}`" for t in tracks)]
     L = ["## Transfer: success of every learned entry on every track", "",
-         ("Replay tracks: average over the four paper scenes; CrowdNav tracks: its test cases. Mean [95% "
-         "interval] over seeds; **bold**: the track the entry was trained on."), "",
+         ("Replay tracks: average over the four paper scenes; CrowdNav tracks: its test cases"
+          + ("; self-play tracks: per agent" if any(TRACKS[t].evaluator.home for t in tracks) else "")
+          + ". Mean [95% interval] over seeds; **bold**: the track the entry was trained on."), "",
          "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     rows = []
     for (entry, origin), per in entries.items():
@@ -113,8 +127,8 @@ def transfer_table(by_track: dict[str, list[dict]]) -> list[str]:
         for t in tracks:
             g = sorted(per.get(t, []), key=lambda r: r["meta"]["submission"])
             c = group_cell(g, TRACKS[t], "success_rate", 3)[1] if g else "—"
-            cells.append(f"**{c}**" if t == origin and c != "—" else c)
-        rows.append((TRACK_ORDER.index(origin), entry.lower(),
+            cells.append(f"**{c}**" if TRACKS[t].is_home(origin) and c != "—" else c)
+        rows.append((origin_rank(origin), entry.lower(),
                      [label(next(iter(per.values()))), f"`{origin}`", str(seeds), *cells]))  # privileged: marked
     L += ["| " + " | ".join(c) + " |" for *_, c in sorted(rows)]
     return L
@@ -147,4 +161,4 @@ def render_tracks(by_track: dict[str, list[dict]], scenes: list[str], episodes: 
     return "\n".join(L)
 
 
-__all__ = ["fmt", "render_tracks", "track_table", "trained_on", "transfer_table"]
+__all__ = ["at_home", "fmt", "render_tracks", "track_table", "trained_on", "transfer_table"]

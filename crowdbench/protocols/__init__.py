@@ -11,6 +11,7 @@ from crowdbench.protocols.base import (
     ProtocolError,
     Track,
     get,
+    homes,
     names,
     of_config,
     register,
@@ -23,7 +24,7 @@ from crowdbench.protocols.reactive_replay import ReactiveReplayProtocol
 from crowdbench.protocols.replay import ReplayProtocol
 from crowdbench.protocols.selfplay import SelfPlayProtocol
 
-__all__ = ["Protocol", "ProtocolError", "Track", "get", "names", "of_config", "register", "registered", "tracks",
+__all__ = ["Protocol", "ProtocolError", "Track", "get", "homes", "names", "of_config", "register", "registered", "tracks",
            "unregister"]
 
 # the order of the leaderboard's tracks (v1, v2-orca, v2-sfm, crowdnav-*) and of of_config's questions

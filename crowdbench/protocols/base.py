@@ -58,10 +58,16 @@ class Track:
         """The Hydra overrides that give this track's env (and ``orca.*``) to the baselines."""
         return self.evaluator.track_overrides(self)
 
-    def fits(self, kind: str, privileged: bool = False) -> bool:
+    def fits(self, kind: str, privileged: bool = False, trained_on: str | None = None) -> bool:
         """Privileged entries (the oracle, a value entry with the ``query`` lookahead) only where the humans'
-        future ignores the robot: there their knowledge is of the task, elsewhere it does not exist."""
-        return not (kind == "oracle" or privileged) or self.privileged_ok
+        future ignores the robot: there their knowledge is of the task, elsewhere it does not exist; and
+        only the entries the protocol admits (``trained_on``: a learned entry's training track)."""
+        return (not (kind == "oracle" or privileged) or self.privileged_ok) and \
+            self.evaluator.admits(kind, trained_on)
+
+    def is_home(self, trained_on: str | None) -> bool:
+        """Whether an entry trained on ``trained_on`` belongs in this track's table (not only the transfer table)."""
+        return trained_on is not None and trained_on in (self.name, self.evaluator.home)
 
 
 class Protocol:
@@ -75,6 +81,11 @@ class Protocol:
     tracks: tuple[Track, ...] = ()
     per_scene = False  # results per replay scene (``eval.scenes``) rather than per setting
     privileged_ok = True  # the humans' future ignores the robot: a privileged policy's plan is valid
+    # a training track that names the protocol rather than one of its tracks: an entry trained on it is at
+    # home on every track of the protocol (self-play trains on mixed crossings of any agent count)
+    home: str | None = None
+    danger_metric = "dangers_per_episode"  # the x-axis of the tracks' success-against-dangers plot
+    oracle_note = "The oracle does not apply: these humans react to the robot, so their future is not known in advance."
 
     def selects(self, env_cfg) -> bool:
         """Whether an ``env`` config without ``env.protocol`` means this protocol (default: only when named)."""
@@ -116,6 +127,12 @@ class Protocol:
     def track_overrides(self, track: Track) -> tuple[str, ...]:
         return ()
 
+    short = ""  # the protocol's name in a plot's title, before the track's setting
+
+    def where(self, track: Track) -> str:
+        """What a cell of ``track``'s table is computed over (the tables' and the site's text)."""
+        return "average over the four paper scenes" if self.per_scene else f"the setting {track.setting}"
+
     def units(self, track: Track, scenes: list[str]) -> list[str]:
         """The result keys of ``track``: the scenes of a per-scene protocol, else its one setting."""
         return list(scenes) if self.per_scene else [track.setting]
@@ -131,8 +148,13 @@ class Protocol:
         """Refuse a result computed on lists that are not the published ones."""
 
     def trained_track(self, env: dict) -> str | None:
-        """The track a training run's ``env`` (a plain dict) corresponds to, or None."""
+        """The track (or :attr:`home`) a training run's ``env`` (a plain dict) corresponds to, or None."""
         return None
+
+    def admits(self, kind: str, trained_on: str | None) -> bool:
+        """Whether the leaderboard evaluates an entry of ``kind`` trained on ``trained_on`` on this protocol's
+        tracks (default: every entry; the privileged ones are filtered by :meth:`Track.fits`)."""
+        return True
 
 
 REGISTRY: dict[str, Protocol] = {}
@@ -193,3 +215,12 @@ def of_config(env_cfg) -> Protocol:
 def tracks() -> dict[str, Track]:
     """Every registered protocol's tracks, in registration order."""
     return {t.name: t for p in REGISTRY.values() for t in p.tracks}
+
+
+def homes() -> list[str]:
+    """What a learned entry may name as the track it was trained on: every track, and each protocol's
+    :attr:`~Protocol.home`, in registration order (a home right after its protocol's tracks)."""
+    out = []
+    for p in REGISTRY.values():
+        out += [t.name for t in p.tracks] + ([p.home] if p.home else [])
+    return out

@@ -177,6 +177,11 @@ class CrowdNavProtocol(Protocol):
         return evaluate_crowdnav(policy, cfg, [track.setting], episodes, out_dir=out_dir,
                                  save_episodes=save_episodes, meta=meta)
 
+    short = "CrowdNav"
+
+    def where(self, track: Track) -> str:
+        return f"CrowdNav's test cases of {track.setting}"
+
     def track_overrides(self, track: Track) -> tuple[str, ...]:
         scenario, n = parse_setting(track.setting)
         return ("env=crowdnav", f"env.scenario={scenario}", f"env.n_humans={n}")

@@ -46,6 +46,19 @@ CROWDNAV = {
     "square_n5": "fb0080314840ebc6f05e3dea02c15ae02652f2a1710743408a918cda33c2cc52",
 }
 
+# the self-play tracks' saved lists (crowdbench/data/selfplay_v1/<setting>.json, crowdbench/protocols/selfplay_tracks.py)
+SELFPLAY = {
+    "circle_n4": "6408531b9f134c472b19ad06c4cf5a43df32bdca704ea14d9d544c2f25237637",
+    "circle_n8": "dfa16b779d079560c4ce787e9f09e44e6fafd78fa1d647d7bd64c01da14864b1",
+    "circle_n16": "ac45d3a601289df67e5ff8af04ef39d7d37ccf4fc63f517a84c00c393255cf6f",
+    "circle_n32": "bb6e94a0cc16f9e3181244652520b689df813beebabf0862864f41ba106b807b",
+    "square_n4": "5841843b14e8d7104005da27975c1a35e8efdcfdd000cf763eadb34aeaad1120",
+    "square_n8": "5b9b18e3c3449fd96f7ac67af3ae6da70f8e97ed46f284dfa199c004b1ab3a24",
+    "square_n16": "8f243a925fa6559b40594d362f1932c92bf24c46bc4cbf22dd6534755a0055f3",
+    "square_n32": "edb94b216b7b23b8542e4742014c447f91db6113a885e6c8160e1080af22ee15",
+    "circle_n8_orca4": "2f67aa7ae54c60272c3294ced1d98764d73a2cc4189314b32dd901979e5de651",
+}
+
 
 class ListError(ValueError):
     """A protocol list that is not the published one: one line naming the file or setting."""
@@ -85,3 +98,17 @@ def check_crowdnav(lists: dict) -> None:
         if want is not None and digest != want:
             raise ListError(f"CrowdNav setting {setting}: case list digest {str(digest)[:12]}... is not the "
                             f"published one ({want[:12]}...); crowdbench/envs/crowdnav_cases.py changed")
+
+
+def check_selfplay(setting: str, path: Path) -> tuple[dict, str]:
+    """The saved list of self-play ``setting`` at ``path`` and its sha256, refused unless it is the published one."""
+    want = SELFPLAY.get(setting)
+    try:
+        got = canonical_sha(path)
+        data = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as e:
+        raise ListError(f"{path}: not a readable self-play list ({type(e).__name__})") from None
+    if want is None or got != want:
+        raise ListError(f"{path}: sha256 {got[:12]}... is not the published self-play list of {setting} "
+                        f"({str(want)[:12]}...); restore it (git checkout {Path(path).name})")
+    return data, got

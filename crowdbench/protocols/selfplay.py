@@ -24,16 +24,26 @@ from pathlib import Path
 
 import torch
 
-from crowdbench.envs.core import COLLISION, OUTCOMES, SUCCESS
+from crowdbench.envs.core import COLLISION, OUTCOMES, SUCCESS, TIMEOUT
 from crowdbench.envs.factory import env_name, selfplay_config, selfplay_world
 from crowdbench.envs.policy import Policy
 from crowdbench.envs.selfplay import SelfPlayConfig, episode_set
 from crowdbench.envs.torchrl_env import CrowdEnv
 from crowdbench.metric_table import IN_SELFPLAY, in_table, metric
-from crowdbench.protocols.base import Protocol
+from crowdbench.protocols.base import Protocol, Track
 from crowdbench.protocols.engine import drive, summarise, write_results
+from crowdbench.protocols.selfplay_tracks import (
+    EPISODES,
+    SETTINGS,
+    episodes_of,
+    list_path,
+    setting_overrides,
+    track_name,
+)
 
 PROTOCOL = "selfplay-v1"
+HOME = "selfplay"  # the training track of every self-play entry (submission.yaml's ``track``)
+OUTCOME_CHAR = {SUCCESS: "S", COLLISION: "C", TIMEOUT: "T"}
 
 
 def rollout(policy: Policy, cfg: SelfPlayConfig, episodes: dict) -> dict:
@@ -112,6 +122,33 @@ def evaluate_selfplay(policy: Policy, cfg: SelfPlayConfig, scenarios=("circle", 
     return results
 
 
+def evaluate_setting(policy: Policy, cfg: SelfPlayConfig, setting: str, episodes: int | None = None,
+                     out_dir: Path | None = None, meta: dict | None = None, save_episodes: bool = True) -> dict:
+    """A leaderboard track: ``policy`` on the published list of ``setting`` (its first ``episodes``, if given).
+
+    The results hold the per-agent and the per-episode metrics side by side under ``scenes[setting]`` (the
+    leaderboard's layout; their keys differ); ``episodes.jsonl`` has one line per episode, its outcome
+    (every agent arrived: success; else any collision: collision; else timeout) and each agent's."""
+    from crowdbench.protocols.lists import check_selfplay
+
+    saved, digest = check_selfplay(setting, list_path(setting))
+    eps = episodes_of(saved, cfg, episodes)
+    tr = rollout(policy, cfg, eps)
+    m = metrics(tr, cfg)
+    results = {"protocol": PROTOCOL, "policy": policy.name, "meta": meta or {}, "episodes": len(eps["start"]),
+               "seed": saved["seed"], "scenes": {setting: {**{k: v for k, v in m.items() if k != "episode"},
+                                                           **m["episode"]}},
+               "lists": {setting: digest}, "sim_config": {k: v for k, v in asdict(cfg).items() if k != "frame"}}
+    rows = []
+    for e, out in enumerate(tr["outcome"].tolist()):
+        worst = SUCCESS if all(o == SUCCESS for o in out) else COLLISION if COLLISION in out else TIMEOUT
+        rows.append({"protocol": PROTOCOL, "setting": setting, "episode": e, "outcome": OUTCOMES[worst],
+                     "agent_outcomes": "".join(OUTCOME_CHAR[o] for o in out)})
+    if out_dir is not None:
+        write_results(Path(out_dir), results, rows if save_episodes else None)
+    return results
+
+
 def format_table(results: dict) -> str:
     """The means of the self-play table's metrics (crowdbench/metric_table.py), one row per setting."""
     cols = in_table(IN_SELFPLAY)
@@ -131,10 +168,17 @@ def _evaluated(env_cfg) -> tuple[list[str], list[int] | None]:
 
 
 class SelfPlayProtocol(Protocol):
-    """Every agent acts from the policy (a robot checkpoint too: the transfer test); no leaderboard track.
-    Its training probe is protocol v1's: a self-play policy is also a robot policy."""
+    """Every agent acts from the policy (a robot checkpoint too: the transfer test). Its tracks
+    (crowdbench/protocols/selfplay_tracks.py) take the baselines that act for every agent (ORCA, straight)
+    and the entries trained in self-play; robot entries are not evaluated there (docs/selfplay.md,
+    "Leaderboard tracks"). Its training probe is protocol v1's: a self-play policy is also a robot policy."""
 
     name, label, world, command = "selfplay", PROTOCOL, "selfplay", "eval-selfplay"
+    tracks = tuple(Track(track_name(s), title, "selfplay", setting=s) for s, title in SETTINGS)
+    home = HOME
+    privileged_ok = False  # the oracle plans against replayed humans, not against agents that react
+    danger_metric = "agent_dangers_per_agent"
+    oracle_note = "The oracle does not apply: every agent reacts to the others, so their future is not known in advance."
 
     def selects(self, env_cfg) -> bool:
         return env_name(env_cfg) == self.world
@@ -166,3 +210,42 @@ class SelfPlayProtocol(Protocol):
         from crowdbench.protocols.replay import replay_probe
 
         return replay_probe(cfg, None)
+
+    # ------------------------------------------------------------------ leaderboard
+    def admits(self, kind: str, trained_on: str | None) -> bool:
+        # why not robot entries as transfer: ~40 of them on 9 tracks of up to 3,200 agents a step would cost
+        # hours per run for numbers `crowdbench eval env=selfplay policy=RUN/checkpoint.pt` gives on demand
+        return kind == "baseline" or (kind == "learned" and trained_on in (HOME, *(t.name for t in self.tracks)))
+
+    def trained_track(self, env: dict) -> str | None:
+        return HOME
+
+    def evaluate_track(self, track: Track, policy, scenes: list[str], episodes: int | None, out_dir, meta: dict,
+                       env=None, save_episodes: bool = True) -> dict:
+        cfg = self.sim_config(env, frame=policy.frame)
+        return evaluate_setting(policy, cfg, track.setting, episodes, out_dir, meta, save_episodes)
+
+    short = "self-play"
+
+    def where(self, track: Track) -> str:
+        return (f"the {EPISODES} episodes of the published list {track.setting}, rates per agent (all arrived, any "
+                "collision: per episode)")
+
+    def track_overrides(self, track: Track) -> tuple[str, ...]:
+        return setting_overrides(track.setting)
+
+    def list_files(self, track: Track, scenes: list[str]) -> list[Path]:
+        return [list_path(track.setting)]
+
+    def check_lists(self, scenes: list[str]) -> None:
+        from crowdbench.protocols.lists import check_selfplay
+
+        for t in self.tracks:
+            check_selfplay(t.setting, list_path(t.setting))
+
+    def check_results(self, results: dict) -> None:
+        from crowdbench.protocols.lists import SELFPLAY, ListError
+
+        for setting, digest in results.get("lists", {}).items():
+            if SELFPLAY.get(setting) != digest:
+                raise ListError(f"self-play setting {setting}: list digest {str(digest)[:12]}... is not the published one")
