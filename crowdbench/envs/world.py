@@ -38,14 +38,11 @@ from crowdbench.envs.core import (
     TIMEOUT,
     SimConfig,
     StepInfo,
-    clip_speed,
-    heading_to,
     outcome_of,
     segment_min_distance,
     step_reward,
-    to_local,
-    to_world,
 )
+from crowdbench.kinematics import advance, clip_speed, heading_to, to_local, to_world
 
 DONE_AGENTS = ("vanish", "obstacle")
 
@@ -164,7 +161,7 @@ class World:
         act = to_world(action.unsqueeze(-2), self.heading).squeeze(-2) if frame == "rotate" else action
         active = self.outcome == RUNNING  # [B, A]
         vel = self.clip_action(act) * active.unsqueeze(-1)
-        new_pos = self.pos + vel * cfg.dt
+        new_pos = advance(self.pos, vel, cfg.dt)
         env_active = active.any(-1)
 
         # humans move from h0 to h1 over the step (decided from the state at its start)
