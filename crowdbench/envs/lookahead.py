@@ -67,7 +67,7 @@ def next_humans(world, model: str):
     # the crowd's advance replaces its tensors (never writes into them): a shallow copy leaves the world's intact;
     # the same batch and active mask as World.step, so the same arithmetic and the same bits
     crowd = copy.copy(world.crowd)
-    _, h1, hv1 = crowd.advance((world.outcome == RUNNING).any(-1), world)
+    _, h1, hv1 = crowd.advance((world.outcome == RUNNING).any(-1), world.agents())
     return h1, crowd.vel, hv1
 
 

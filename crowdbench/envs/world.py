@@ -42,6 +42,7 @@ from crowdbench.envs.core import (
     segment_min_distance,
     step_reward,
 )
+from crowdbench.envs.humans import Agents
 from crowdbench.kinematics import advance, clip_speed, heading_to, to_local, to_world
 
 DONE_AGENTS = ("vanish", "obstacle")
@@ -115,6 +116,10 @@ class World:
             return torch.ones_like(self.outcome, dtype=torch.bool)
         return self.outcome == RUNNING
 
+    def agents(self) -> Agents:
+        """The agents as the crowd model sees them (its whole view of the world, crowdbench/envs/humans)."""
+        return Agents(self.pos, self.vel, self.present())
+
     def _pair_mask(self, present: torch.Tensor) -> torch.Tensor:
         """``[B, A, A]``: agent ``j`` is a body agent ``i`` can meet (not itself)."""
         return present.unsqueeze(1) & ~self.eye
@@ -165,7 +170,7 @@ class World:
         env_active = active.any(-1)
 
         # humans move from h0 to h1 over the step (decided from the state at its start)
-        h0, h1, hv1 = self.crowd.advance(env_active, self)
+        h0, h1, hv1 = self.crowd.advance(env_active, self.agents())
         swept_h = (segment_min_distance(h0.unsqueeze(1) - self.pos.unsqueeze(2), h1.unsqueeze(1) - new_pos.unsqueeze(2))
                    - self.radius_sum).masked_fill(~hv1.unsqueeze(1), _FAR)
         end_h = ((h1.unsqueeze(1) - new_pos.unsqueeze(2)).norm(dim=-1) - self.radius_sum).masked_fill(
