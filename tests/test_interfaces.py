@@ -5,6 +5,8 @@ as the expressions they replaced."""
 from __future__ import annotations
 
 import ast
+import re
+from dataclasses import fields
 from pathlib import Path
 
 import pytest
@@ -17,7 +19,9 @@ from crowdbench.models import ENCODERS, make_encoder
 from crowdbench.models.encoder import RAW_FIELDS, SplitEncoder, forward_prepared, prep_fields, prepare, splits
 from crowdbench.models.heads import lookahead, prepared_keys
 
-PACKAGE = Path(__file__).resolve().parents[1] / "crowdbench"
+REPO = Path(__file__).resolve().parents[1]
+
+PACKAGE = REPO / "crowdbench"
 SPLIT = {"gatedgcn", "gcn", "gat", "mlp", "lstm_rl"}  # the encoders with a split-out preprocessing
 INTERFACE = {"prepare", "forward_prepared", "prep_key", "prep_fields", "out_dim", "last_gates"}
 
@@ -99,3 +103,37 @@ def test_prediction_is_the_expression_it_replaced_bit_for_bit():
     heading = torch.nn.functional.normalize(torch.randn(64, 1, 2), dim=-1)
     back = kinematics.to_world(kinematics.to_local(pos, heading), heading)
     torch.testing.assert_close(back, pos)
+
+
+def _section(title: str) -> set[str]:
+    text = (REPO / "docs" / "architecture.md").read_text()
+    section = text.split(f"## {title}", 1)[1].split("\n## ", 1)[0]
+    return set(re.findall(r"`((?:crowdbench|tests|docs)/[\w/.<>]+\.(?:py|md|yaml))`", section))
+
+
+@pytest.mark.parametrize("title, must", [
+    ("How to add an encoder", {"crowdbench/models/__init__.py", "crowdbench/config_schema.py", "tests/worlds.py"}),
+    ("How to add an algorithm", {"crowdbench/algos/registry.py"}),
+    ("How to add a crowd model", {"crowdbench/envs/humans/reactive.py", "crowdbench/config_schema.py"}),
+])
+def test_the_how_to_lists_name_files_that_exist(title, must):
+    named = _section(title)
+    assert must <= named, sorted(must - named)
+    fixed = [f for f in named if "<" not in f]
+    assert all((REPO / f).is_file() for f in fixed), sorted(f for f in fixed if not (REPO / f).is_file())
+
+
+def test_every_component_has_the_entries_the_how_to_lists():
+    from crowdbench.algos.registry import BUILTIN
+    from crowdbench.config_schema import ENCODER_SCHEMAS, CrowdNavEnvConfig, SelfPlayEnvConfig
+    from crowdbench.envs.humans.reactive import CROWDS
+
+    conf = PACKAGE / "conf"
+    for name in ENCODERS:  # models/__init__.py, conf/encoder, config_schema.py, tests/worlds.py
+        assert (conf / "encoder" / f"{name}.yaml").is_file() and name in ENCODER_SCHEMAS and name in SMALL_ENCODERS
+    for name, e in BUILTIN.items():  # its module and its YAML
+        assert (PACKAGE / Path(*e.module.split(".")[1:])).with_suffix(".py").is_file()
+        assert (conf / "algo" / f"{name}.yaml").is_file()
+    for schema in (CrowdNavEnvConfig, SelfPlayEnvConfig):  # every crowd model is a choice of both worlds
+        choices = {f.name: f for f in fields(schema)}["humans"].metadata["choices"]
+        assert set(CROWDS) <= set(choices), (schema.__name__, choices)
