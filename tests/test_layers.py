@@ -141,3 +141,7 @@ def test_docs_state_the_same_layers():
     on_disk = {p.stem if p.is_file() else p.name for p in PACKAGE.iterdir()
                if (p.suffix == ".py" or (p / "__init__.py").is_file()) and p.name != "__init__.py"}
     assert on_disk == set(LAYER), "every top-level module or package of crowdbench/ has one layer"
+    # the one-line summary names packages in layer order
+    line = re.search(r"^In short: (.+)\.$", (ROOT / "docs" / "architecture.md").read_text(), re.MULTILINE)
+    order = [LAYER[re.sub(r" \(.*\)", "", n)] for n in line.group(1).split(" -> ")]
+    assert order == sorted(set(order)), line.group(1)
