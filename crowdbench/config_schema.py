@@ -15,6 +15,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from crowdbench.envs.humans.reactive import CROWDS
+from crowdbench.envs.humans.reactive_replay import MODELS as REACTIVE_MODELS
 from crowdbench.schema_fields import bounded
 
 FRAMES = ("rotate", "translate", "world")
@@ -49,7 +51,7 @@ class SimEnvConfig:
 class ReactiveConfig:
     """``env.reactive`` (crowdbench/envs/humans/reactive_replay.py ``ReactiveParams``)."""
 
-    model: str = bounded("orca", choices=("orca", "sfm"))
+    model: str = bounded("orca", choices=REACTIVE_MODELS)
     horizon: float = bounded(1.0, gt=0)
     speed_factor: float = bounded(1.3, gt=0)
     min_speed: float = bounded(1.0, ge=0)
@@ -82,7 +84,7 @@ class SelfPlayEnvConfig(SimEnvConfig):
     background: str = ""
     done_agents: str = bounded("vanish", choices=("vanish", "obstacle"))
     n_humans: int = bounded(0, ge=0)
-    humans: str = bounded("orca", choices=("orca", "sfm"))
+    humans: str = bounded("orca", choices=tuple(CROWDS))  # the crowd models, by name
     robot_visible: bool = True
     human_v_pref: float = bounded(1.0, gt=0)
     obs_slots: int = bounded(0, ge=0)
@@ -101,7 +103,7 @@ class CrowdNavEnvConfig(SimEnvConfig):
     name: str = bounded("crowdnav", choices=("crowdnav",))
     scenario: str = bounded("circle", choices=("circle", "square"))
     n_humans: int = bounded(5, ge=1)
-    humans: str = bounded("orca", choices=("orca", "sfm"))
+    humans: str = bounded("orca", choices=tuple(CROWDS))  # the crowd models, by name
     robot_visible: bool = False
     robot_radius: float = bounded(0.3, gt=0)
     human_radius: float = bounded(0.3, ge=0)

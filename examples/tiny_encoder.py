@@ -5,7 +5,7 @@ It lives outside the ``crowdbench`` package; a leaderboard submission ships a co
 ``crowdbench.encoders`` entry-point group of an installed package) and the harness registers it into
 ``crowdbench.models.ENCODERS`` before loading the checkpoint.
 
-The encoder interface (crowdbench/models/base.py) needs only ``out_dim`` and
+The encoder interface (crowdbench/models/encoder.py) needs only ``out_dim`` and
 ``forward(robot, humans, humans_mask) -> (h_nodes [*, N, D], robot_h [*, D])``.
 This one is deliberately simple: the robot state, the mean of the observed humans' features
 and their count, through one hidden layer.

@@ -107,7 +107,7 @@ def test_every_step_of_a_crowdnav_crowd_agrees():
         new = {}
         for backend in ("numba", "torch"):
             crowd.backend = backend
-            new[backend] = crowd.velocities(world)
+            new[backend] = crowd.velocities(world.agents())
         worst = max(worst, float((new["numba"] - new["torch"]).abs().max()) / torch.finfo(torch.float32).eps)
         world.step(torch.rand(16, 1, 2, generator=g) - 0.5)  # (with torch: the reference trajectory)
     assert worst <= BOUND

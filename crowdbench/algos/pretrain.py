@@ -55,7 +55,7 @@ def expert_policy(cfg, env=None):
             raise ValueError("train.pretrain=checkpoint needs train.pretrain_checkpoint=PATH")
         return CheckpointExpert(cfg.train.pretrain_checkpoint, env, cfg.env.frame, cfg.env.v_max)
     from crowdbench.baselines.orca import ORCA
-    from crowdbench.policies import params
+    from crowdbench.baselines.params import params
 
     return ORCA(**params("orca", cfg), frame=cfg.env.frame)
 

@@ -1,4 +1,5 @@
-"""Simulator settings, outcomes and the geometry shared by the world (:mod:`crowdbench.envs.world`).
+"""Simulator settings, outcomes, rewards and the collision geometry of the world (:mod:`crowdbench.envs.world`;
+its kinematics: :mod:`crowdbench.kinematics`).
 
 Geometry (SPEC section 3):
 - clearance ``d`` = centre distance - robot radius - human radius;
@@ -15,6 +16,9 @@ from dataclasses import dataclass, field, fields
 import torch
 
 from crowdbench.data.scenes import Scene
+
+# the kinematics live in one module that the networks share; re-exported for code that imports them from here
+from crowdbench.kinematics import clip_speed, heading_to, to_local, to_world  # noqa: F401
 
 RUNNING, SUCCESS, COLLISION, TIMEOUT = 0, 1, 2, 3
 OUTCOMES = {SUCCESS: "success", COLLISION: "collision", TIMEOUT: "timeout"}
@@ -101,35 +105,6 @@ def segment_min_distance(a0: torch.Tensor, a1: torch.Tensor) -> torch.Tensor:
     dd = (d * d).sum(-1)
     s = (-(a0 * d).sum(-1) / dd.clamp_min(1e-12)).clamp(0.0, 1.0)
     return (a0 + s.unsqueeze(-1) * d).norm(dim=-1)
-
-
-def to_local(vec: torch.Tensor, heading: torch.Tensor) -> torch.Tensor:
-    """Rotate ``[..., K, 2]`` world vectors into the frame whose x-axis is ``heading`` ``[..., 2]``.
-
-    Elementwise rather than ``vec @ R``: batched 2x2 matmuls cost ~20x more per call on CPU.
-    """
-    c, s = heading[..., 0:1], heading[..., 1:2]
-    x, y = vec[..., 0], vec[..., 1]
-    return torch.stack((c * x + s * y, c * y - s * x), -1)
-
-
-def to_world(vec: torch.Tensor, heading: torch.Tensor) -> torch.Tensor:
-    c, s = heading[..., 0:1], heading[..., 1:2]
-    x, y = vec[..., 0], vec[..., 1]
-    return torch.stack((c * x - s * y, s * x + c * y), -1)
-
-
-def clip_speed(action: torch.Tensor, v_max: float) -> torch.Tensor:
-    """Each component clamped to ``[-v_max, v_max]``, then the speed clipped to ``v_max`` (SPEC section 3)."""
-    a = action.clamp(-v_max, v_max)
-    return a * (v_max / a.norm(dim=-1, keepdim=True).clamp_min(v_max))
-
-
-def heading_to(goal: torch.Tensor, pos: torch.Tensor, heading: torch.Tensor) -> torch.Tensor:
-    """Unit vector from ``pos`` to ``goal``; at the goal the direction is undefined: keep ``heading``."""
-    to_goal = goal - pos
-    dist = to_goal.norm(dim=-1, keepdim=True)
-    return torch.where(dist > 1e-6, to_goal / dist.clamp_min(1e-6), heading)
 
 
 def step_reward(cfg, end: torch.Tensor, swept: torch.Tensor, success: torch.Tensor, collision: torch.Tensor,

@@ -24,7 +24,8 @@ import math
 
 import torch
 
-from crowdbench.envs.core import _FAR, RUNNING, segment_min_distance, step_reward, to_local, to_world
+from crowdbench.envs.core import _FAR, RUNNING, segment_min_distance, step_reward
+from crowdbench.kinematics import advance, to_local, to_world
 
 MODELS = ("query", "cv")
 PRIVILEGED_MODELS = ("query",)
@@ -60,13 +61,13 @@ def next_humans(world, model: str):
         raise ValueError(f"unknown lookahead model {model!r}; valid: {', '.join(MODELS)}")
     pos, vel, valid = world.humans()
     if model == "cv":
-        return pos + vel * world.cfg.dt, vel, valid
+        return advance(pos, vel, world.cfg.dt), vel, valid
     if getattr(world.crowd, "robot_visible", False) or world.interact:
         raise ValueError("lookahead=query needs an invisible robot: the humans' next state would depend on the action")
     # the crowd's advance replaces its tensors (never writes into them): a shallow copy leaves the world's intact;
     # the same batch and active mask as World.step, so the same arithmetic and the same bits
     crowd = copy.copy(world.crowd)
-    _, h1, hv1 = crowd.advance((world.outcome == RUNNING).any(-1), world)
+    _, h1, hv1 = crowd.advance((world.outcome == RUNNING).any(-1), world.agents())
     return h1, crowd.vel, hv1
 
 
@@ -82,7 +83,7 @@ def candidates(world, actions: torch.Tensor, model: str) -> dict[str, torch.Tens
     vel = world.clip_action(to_world(act, heading) if cfg.frame == "rotate" else act)
     active = world.outcome[:, :1] == RUNNING  # [B, 1]
     vel = vel * active.unsqueeze(-1)
-    new_pos = pos.unsqueeze(1) + vel * cfg.dt  # [B, K, 2]
+    new_pos = advance(pos.unsqueeze(1), vel, cfg.dt)  # [B, K, 2]
     h0 = world.humans()[0]
     h1, hv, hvalid = next_humans(world, model)
     swept = (segment_min_distance(h0.unsqueeze(1) - pos[:, None, None], h1.unsqueeze(1) - new_pos.unsqueeze(2))

@@ -38,14 +38,12 @@ from crowdbench.envs.core import (
     TIMEOUT,
     SimConfig,
     StepInfo,
-    clip_speed,
-    heading_to,
     outcome_of,
     segment_min_distance,
     step_reward,
-    to_local,
-    to_world,
 )
+from crowdbench.envs.humans import Agents
+from crowdbench.kinematics import advance, clip_speed, heading_to, to_local, to_world
 
 DONE_AGENTS = ("vanish", "obstacle")
 
@@ -118,6 +116,10 @@ class World:
             return torch.ones_like(self.outcome, dtype=torch.bool)
         return self.outcome == RUNNING
 
+    def agents(self) -> Agents:
+        """The agents as the crowd model sees them (its whole view of the world, crowdbench/envs/humans)."""
+        return Agents(self.pos, self.vel, self.present())
+
     def _pair_mask(self, present: torch.Tensor) -> torch.Tensor:
         """``[B, A, A]``: agent ``j`` is a body agent ``i`` can meet (not itself)."""
         return present.unsqueeze(1) & ~self.eye
@@ -164,11 +166,11 @@ class World:
         act = to_world(action.unsqueeze(-2), self.heading).squeeze(-2) if frame == "rotate" else action
         active = self.outcome == RUNNING  # [B, A]
         vel = self.clip_action(act) * active.unsqueeze(-1)
-        new_pos = self.pos + vel * cfg.dt
+        new_pos = advance(self.pos, vel, cfg.dt)
         env_active = active.any(-1)
 
         # humans move from h0 to h1 over the step (decided from the state at its start)
-        h0, h1, hv1 = self.crowd.advance(env_active, self)
+        h0, h1, hv1 = self.crowd.advance(env_active, self.agents())
         swept_h = (segment_min_distance(h0.unsqueeze(1) - self.pos.unsqueeze(2), h1.unsqueeze(1) - new_pos.unsqueeze(2))
                    - self.radius_sum).masked_fill(~hv1.unsqueeze(1), _FAR)
         end_h = ((h1.unsqueeze(1) - new_pos.unsqueeze(2)).norm(dim=-1) - self.radius_sum).masked_fill(

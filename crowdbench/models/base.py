@@ -1,24 +1,11 @@
-"""The encoder interface shared by every registered encoder, and the graph-encoder skeleton.
+"""The graph-encoder skeleton (:class:`GraphEncoder`) and what encoders share (:class:`Gates`, soft caps).
 
-Every encoder is an ``nn.Module`` with (the first two are all a new encoder needs)
-
-- ``out_dim: int`` — the size ``D`` of the node states it returns;
-- ``forward(robot, humans=None, humans_mask=None) -> (h_nodes, robot_h)`` where the inputs
-  are the observation tensors ``[*, 6], [*, M, 4], [*, M]`` (``*`` = e.g. ``B, A``) or a
-  TensorDict holding them (``("agents", "observation", ...)``), and
-  ``h_nodes [*, N_out, D]`` are final node states (node 0 is always the agent itself),
-  ``robot_h [*, D]`` the agent's state that the heads consume;
-- ``last_gates`` — :class:`Gates` of the agent's incoming edges in the last layer of the
-  most recent plain (non-vmapped) call, or ``None`` for encoders without gates;
-- optionally, the parameter-free preprocessing split out, so that a training batch is preprocessed
-  once and shared by actor, critics and their targets (:func:`prepare_batch` in
-  :mod:`crowdbench.models.heads`): ``prep_key: str`` (names the preprocessing; encoders
-  with equal keys share it), ``prep_fields: tuple[str]``,
-  ``prepare(robot, humans=None, humans_mask=None) -> dict[str, Tensor]`` (leading dims
-  kept) and ``forward_prepared(prep: dict) -> (h_nodes, robot_h)``;
-  ``forward(obs) == forward_prepared(prepare(obs))``.
-
-Heads only use ``robot_h`` and ``out_dim``, so they work with any registered encoder.
+The encoder interface itself is declared in :mod:`crowdbench.models.encoder`: every encoder has
+``out_dim`` and ``forward(robot, humans=None, humans_mask=None) -> (h_nodes, robot_h)`` (and optionally
+``last_gates``); one whose parameter-free preprocessing is split out subclasses
+:class:`~crowdbench.models.encoder.SplitEncoder` (``prep_key``, ``prep_fields``, ``prepare``,
+``forward_prepared``), as :class:`GraphEncoder` does. Heads only use ``robot_h`` and ``out_dim``, so they
+work with any registered encoder.
 """
 
 from __future__ import annotations
@@ -29,6 +16,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from crowdbench.models.encoder import SplitEncoder
 from crowdbench.models.graph import (
     DEFAULT_K,
     GRAPH_FIELDS,
@@ -87,7 +75,7 @@ def indicator_row(like: torch.Tensor) -> torch.Tensor:
     return _IND[key]
 
 
-class GraphEncoder(nn.Module):
+class GraphEncoder(SplitEncoder):
     """Skeleton of a message-passing encoder over :func:`build_graph` graphs.
 
     Subclasses define ``self.layers`` (an ``nn.ModuleList``) whose items have

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import torch
 
+from crowdbench.models.encoder import SplitEncoder
 from crowdbench.models.graph import _gather_rows, flatten_obs, unpack_obs
 from crowdbench.models.vmap_once import batch_max
 
@@ -33,8 +34,8 @@ def compact_humans(humans: torch.Tensor, mask: torch.Tensor):
     return _gather_rows(humans, order), torch.gather(mask, -1, order)
 
 
-class CompactHumans:
-    """Mixin giving a set encoder the preprocessing API with compacted human slots. Its prepared
+class CompactHumans(SplitEncoder):
+    """Mixin (in front of the encoder class, :func:`compacted`) giving a set encoder the preprocessing API with compacted human slots. Its prepared
     ``h_nodes`` follow the compacted slots; gates are only recorded by the raw ``forward``."""
 
     prep_fields = ("robot", "humans", "humans_mask")

@@ -27,7 +27,8 @@ with the raw ones (use the raw actor module in the collector)::
     batch = prepare_batch(replay_buffer.sample(), actor.encoder, critic.encoder)
     loss(batch)
 
-The heads only use ``encoder.out_dim`` and ``robot_h``, never the encoder's internals.
+The heads only use ``encoder.out_dim`` and ``robot_h``, never the encoder's internals, and ask
+:func:`~crowdbench.models.encoder.splits` whether its preprocessing is split out.
 """
 
 from __future__ import annotations
@@ -40,34 +41,14 @@ import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 
-from crowdbench.envs.core import clip_speed
 from crowdbench.envs.policy import ACTION, GROUP, OBS
+from crowdbench.kinematics import predict_observation
+from crowdbench.models.encoder import RAW_FIELDS, forward_prepared, prep_fields, prepare, splits  # noqa: F401
 from crowdbench.models.graph import unpack_obs
 from crowdbench.models.vmap_once import once
 
 OBS_KEYS = [OBS + ("robot",), OBS + ("humans",), OBS + ("humans_mask",)]
 STATE_ACTION_VALUE = (GROUP, "state_action_value")
-
-
-RAW_FIELDS = ("robot", "humans", "humans_mask")
-
-
-def prep_fields(encoder: nn.Module) -> tuple:
-    """The encoder's prepared fields; the raw observation for encoders without a
-    preprocessing API (a minimal encoder only needs ``out_dim`` and ``forward``)."""
-    return tuple(getattr(encoder, "prep_fields", RAW_FIELDS)) if hasattr(encoder, "prepare") else RAW_FIELDS
-
-
-def prepare(encoder: nn.Module, robot, humans, humans_mask) -> dict:
-    if hasattr(encoder, "prepare"):
-        return encoder.prepare(robot, humans, humans_mask)
-    return dict(zip(RAW_FIELDS, (robot, humans, humans_mask), strict=True))
-
-
-def forward_prepared(encoder: nn.Module, prep: dict):
-    if hasattr(encoder, "forward_prepared"):
-        return encoder.forward_prepared(prep)
-    return encoder(*(prep[f] for f in RAW_FIELDS))
 
 
 def mlp(sizes: list[int]) -> nn.Sequential:
@@ -119,18 +100,8 @@ class Actor(nn.Module):
         return self.act(forward_prepared(self.encoder, prep)[1])
 
 
-def lookahead(robot, humans, humans_mask, action, dt: float, v_max: float):
-    """The observation ``dt`` seconds ahead if the robot moves with ``action`` and every observed
-    human keeps its velocity (robot-relative frame, axes kept): ``robot [*, 6]``, ``humans [*, M, 4]``.
-
-    The robot stays at the origin with velocity ``a`` (speed-clipped as the simulator does),
-    the goal moves by ``-a dt`` and each human by ``(v_h - a) dt``; the mask is unchanged."""
-    a = clip_speed(action.to(robot.dtype), v_max)
-    shift = a * dt
-    robot = torch.cat((robot[..., :2], a, robot[..., 4:6] - shift), -1)
-    moved = humans[..., :2] + humans[..., 2:4] * dt - shift.unsqueeze(-2)
-    humans = torch.cat((moved * humans_mask.unsqueeze(-1).to(humans.dtype), humans[..., 2:4]), -1)
-    return robot, humans, humans_mask
+# the critic's prediction is the shared kinematics' (crowdbench/kinematics.py), under the name it has always had here
+lookahead = predict_observation
 
 
 class Critic(nn.Module):
@@ -236,8 +207,8 @@ class _Prepared(nn.Module):
 
 def prepared_keys(encoder: nn.Module) -> list[tuple]:
     """``("agents", "observation", encoder.prep_key, field)`` for each prepared field (the
-    raw observation keys for encoders without a preprocessing API)."""
-    if not hasattr(encoder, "prepare"):
+    raw observation keys for an encoder without the split, :mod:`crowdbench.models.encoder`)."""
+    if not splits(encoder):
         return list(OBS_KEYS)
     return [OBS + (encoder.prep_key, f) for f in encoder.prep_fields]
 
@@ -299,7 +270,7 @@ def prepare_batch(td, *encoders, include_next: bool = True, include_root: bool =
         roots.append(("next",))
     done = set()
     for enc in encoders:
-        if not hasattr(enc, "prepare"):  # reads the raw observation
+        if not splits(enc):  # reads the raw observation
             continue
         if enc.prep_key in done:
             continue

@@ -29,6 +29,7 @@ import torch
 from torch import nn
 
 from crowdbench.models.base import is_plain
+from crowdbench.models.encoder import SplitEncoder
 from crowdbench.models.graph import _gather_rows, flatten_obs, unpack_obs
 from crowdbench.models.sarl import relu_mlp
 from crowdbench.models.vmap_once import batch_max
@@ -48,7 +49,7 @@ def sorted_sequence(robot: torch.Tensor, humans: torch.Tensor, mask: torch.Tenso
     return _gather_rows(feat, order), mask.sum(-1)
 
 
-class LSTMRLEncoder(nn.Module):
+class LSTMRLEncoder(SplitEncoder):
     def __init__(self, dim: int = 32, hidden_size: int = 32, hidden=(64,)):
         super().__init__()
         self.out_dim = self.dim = dim

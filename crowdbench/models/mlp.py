@@ -14,10 +14,11 @@ import itertools
 import torch
 from torch import nn
 
+from crowdbench.models.encoder import SplitEncoder
 from crowdbench.models.graph import _gather_rows, flatten_obs, unpack_obs
 
 
-class MLPEncoder(nn.Module):
+class MLPEncoder(SplitEncoder):
     def __init__(self, dim: int = 256, hidden: tuple | list = (256, 256), max_humans: int = 40):
         super().__init__()
         self.out_dim = dim

@@ -28,7 +28,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from crowdbench.envs.core import to_local
+from crowdbench.kinematics import to_local
 from crowdbench.models.sarl import masked_softmax, relu_mlp
 
 SELF_DIM, JOINT_DIM = 6, 13

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import torch
 
-from crowdbench.envs.humans import orca, orca_kernel, sfm, sfm_kernel
+from crowdbench.envs.humans import Agents, orca, orca_kernel, sfm, sfm_kernel
 from crowdbench.envs.humans.sfm import SFMParams
 
 
@@ -71,11 +71,11 @@ class ReactiveCrowd:
         dist = to_goal.norm(dim=-1, keepdim=True)
         return to_goal * (self.v_pref / dist.clamp_min(1e-12)).clamp(max=1.0)
 
-    def velocities(self, world) -> torch.Tensor:
+    def velocities(self, agents: Agents | None) -> torch.Tensor:
         raise NotImplementedError
 
-    def advance(self, env_active: torch.Tensor, world):
-        new_vel = self.velocities(world) * self.valid.unsqueeze(-1)
+    def advance(self, env_active: torch.Tensor, agents: Agents | None):
+        new_vel = self.velocities(agents) * self.valid.unsqueeze(-1)
         moving = (env_active.unsqueeze(-1) & self.valid).unsqueeze(-1)
         prev = self.pos
         self.vel = torch.where(moving, new_vel, self.vel)
@@ -98,16 +98,16 @@ class OrcaCrowd(ReactiveCrowd):
         super().__init__(*args, **kwargs)
         self.params = params or OrcaParams()
 
-    def velocities(self, world) -> torch.Tensor:
+    def velocities(self, agents: Agents | None) -> torch.Tensor:
         p, M = self.params, self.M
         pos, vel, valid = self.pos, self.vel, self.valid
         radius = torch.full(valid.shape, self.radius + p.radius_margin)
         pref = self.preferred_velocity()
         if self.robot_visible:
-            pos, vel = torch.cat((pos, world.pos), 1), torch.cat((vel, world.vel), 1)
-            pref = torch.cat((pref, world.vel), 1)
-            valid = torch.cat((valid, world.present()), 1)
-            radius = torch.cat((radius, torch.full(world.outcome.shape, self.robot_radius + p.radius_margin)), 1)
+            pos, vel = torch.cat((pos, agents.pos), 1), torch.cat((vel, agents.vel), 1)
+            pref = torch.cat((pref, agents.vel), 1)
+            valid = torch.cat((valid, agents.present), 1)
+            radius = torch.cat((radius, torch.full(agents.present.shape, self.robot_radius + p.radius_margin)), 1)
         new = ORCA_BACKENDS[p.backend](pos, vel, pref, valid, radius, self.v_pref, time_horizon=p.time_horizon, dt=self.dt,
                               neighbor_dist=p.neighbor_dist, max_neighbors=p.max_neighbors)
         # RVO2's fallback program can leave the speed limit when half-planes are nearly opposite (22 m/s
@@ -129,10 +129,10 @@ class SfmCrowd(ReactiveCrowd):
             raise ValueError(f"unknown env.sfm_backend {backend!r}; valid: {', '.join(SFM_BACKENDS)}")
         self.params, self.backend = params or SFMParams(), backend
 
-    def velocities(self, world) -> torch.Tensor:
+    def velocities(self, agents: Agents | None) -> torch.Tensor:
         others = {}
         if self.robot_visible:
-            others = {"others_pos": world.pos, "others_vel": world.vel, "others_valid": world.present(),
+            others = {"others_pos": agents.pos, "others_vel": agents.vel, "others_valid": agents.present,
                       "others_radius": self.robot_radius}
         return SFM_BACKENDS[self.backend](self.pos, self.vel, self.goal, self.valid, self.radius, self.v_pref,
                                           dt=self.dt, params=self.params, **others)

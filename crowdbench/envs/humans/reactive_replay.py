@@ -38,6 +38,7 @@ from dataclasses import asdict, dataclass, fields
 import torch
 
 from crowdbench.data.scenes import Scene
+from crowdbench.envs.humans import Agents
 from crowdbench.envs.humans.lp import _gather, _rows, far_lines, lp2_packed, lp3_packed
 from crowdbench.envs.humans.orca import DTYPE, _orca_lines
 from crowdbench.envs.humans.sfm import SFMParams, robot_force
@@ -130,14 +131,14 @@ class ReactiveReplayCrowd:
         t = self.t
         return self.scene.pos[t] + self.offset, self.scene.vel[t] + self.dev, self.scene.valid[t]
 
-    def advance(self, env_active: torch.Tensor, world):
+    def advance(self, env_active: torch.Tensor, agents: Agents):
         sc, t = self.scene, self.t
         valid = sc.valid[t]
         pos, vel, _ = self.observe()
         v_rec = self.v_rec[t]
         pref = v_rec - self.offset / self.params.horizon
         cap = (v_rec.norm(dim=-1) * self.params.speed_factor).clamp_min(self.params.min_speed)
-        robots = world.pos, world.vel, world.present()
+        robots = agents.pos, agents.vel, agents.present
         if self.params.model == "orca":
             new = self._orca(pos, vel, pref, cap, valid, *robots)
             dev = new - v_rec

@@ -32,7 +32,7 @@ class ReplayCrowd:
     def observe(self):
         return self.scene.pos[self.t], self.scene.vel[self.t], self.scene.valid[self.t]
 
-    def advance(self, env_active: torch.Tensor, world):
+    def advance(self, env_active: torch.Tensor, agents=None):
         # humans present at t1, moving from their previous position (their spawn point if they just appeared)
         t1 = torch.where(env_active, self.t + 1, self.t)
         self.t = t1
@@ -55,6 +55,6 @@ class NoCrowd:
     def observe(self):
         return self._empty
 
-    def advance(self, env_active: torch.Tensor, world):
+    def advance(self, env_active: torch.Tensor, agents=None):
         z, _, v = self._empty
         return z, z, v

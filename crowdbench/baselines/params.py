@@ -1,0 +1,77 @@
+"""The built-in policies' constructor arguments, read from a composed config.
+
+A baseline gets the same arguments wherever it is built (``crowdbench eval policy=NAME``, the leaderboard
+harness, the ORCA warm start of training): the env config's dynamics (``v_max``, ``dt``, radii), its
+section of ``conf/config.yaml`` (``orca.*``, ``oracle.*``), the seed, then the caller's overrides. Kept
+here, below the algorithms, so that training (crowdbench/algos/pretrain.py) builds its ORCA expert
+without importing the policy registry (crowdbench/policies.py), which sits above it.
+"""
+
+from __future__ import annotations
+
+import copy
+import functools
+from pathlib import Path
+
+NAMES = ("orca", "straight", "oracle")  # every built-in policy (anything else must be a checkpoint path)
+PRIVILEGED = ("oracle",)  # knows the replayed humans' future: an upper bound, not a navigation policy
+BASELINES = tuple(n for n in NAMES if n not in PRIVILEGED)
+CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
+ENV_ARGS = {"orca": ("v_max", "dt", "robot_radius", "human_radius"), "straight": ("v_max", "dt"), "oracle": ()}
+SEEDED = ("orca",)  # policies whose constructor takes the run's seed
+
+
+class PolicyError(ValueError):
+    """A policy that cannot be built; ``key`` names the offending override, if any."""
+
+    def __init__(self, message: str, key: str | None = None):
+        super().__init__(message)
+        self.key = key
+
+
+@functools.cache
+def _composed() -> dict:
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+        return OmegaConf.to_container(compose(config_name="config"), resolve=True)
+
+
+def default_config() -> dict:
+    """``conf/config.yaml`` composed without overrides (what ``crowdbench eval`` sees), as a plain dict."""
+    return copy.deepcopy(_composed())
+
+
+def _plain(cfg) -> dict:
+    if cfg is None:
+        return default_config()
+    if isinstance(cfg, dict):
+        return cfg
+    from omegaconf import OmegaConf  # a Hydra DictConfig: lists inside become plain lists too
+
+    return OmegaConf.to_container(cfg, resolve=True)
+
+
+def params(name: str, cfg=None, overrides: dict | None = None) -> dict:
+    """Constructor arguments of built-in policy ``name``.
+
+    ``cfg`` is a composed config (dict or DictConfig; default: :func:`default_config`).
+    ``overrides`` maps ``key`` or ``name.key`` to a value; only keys of the ``name`` section
+    (and ``seed`` for seeded policies) are accepted: the dynamics are the protocol's."""
+    if name not in NAMES:
+        raise PolicyError(f"unknown policy {name!r}; valid: {', '.join(NAMES)} or a checkpoint path")
+    cfg = _plain(cfg)
+    section = dict(cfg.get(name) or {})
+    env = cfg.get("env") or {}
+    out = {k: env[k] for k in ENV_ARGS[name] if k in env}
+    if name in SEEDED:
+        out["seed"] = cfg.get("seed", 0)
+    out.update(section)
+    tunable = [*sorted(section), *(["seed"] if name in SEEDED else [])]
+    for key, value in (overrides or {}).items():
+        k = key.split(".", 1)[1] if key.startswith(f"{name}.") else key
+        if k not in tunable:
+            raise PolicyError(f"unknown {name} parameter {key!r}; valid: {', '.join(tunable) or 'none'}", key=key)
+        out[k] = value
+    return out
