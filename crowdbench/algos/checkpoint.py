@@ -19,7 +19,7 @@ REQUIRED = ("config", "actor", "frames")
 # 0.1.0) wrote the string tag LEGACY_TAG instead; its configs may lack keys added since, which
 # :func:`upgrade` fills with the values the format-1 code used. Bump FORMAT when a change to the
 # saved fields or config needs an upgrade step, and add that step to UPGRADES.
-FORMAT = 7
+FORMAT = 8
 LEGACY_TAG = "crowdbench-checkpoint-v1"
 
 
@@ -70,7 +70,8 @@ UNREAD_ALGO_KEYS = {
 # the imitation warm start's keys (train.pretrain*, format 4) as a run before them trained: no warm start
 PRETRAIN_DEFAULTS = {"pretrain": None, "pretrain_frames": 20000, "pretrain_epochs": 3, "pretrain_batch": 256,
                      "pretrain_lr": 1.0e-3, "pretrain_heldout": 0.1, "pretrain_bc_weight": 0.0,
-                     "pretrain_bc_updates": 20000, "pretrain_checkpoint": None}
+                     "pretrain_bc_updates": 20000, "pretrain_checkpoint": None, "pretrain_dagger_rounds": 0,
+                     "pretrain_dagger_frames": 5000}
 
 
 def _upgrade_3(state: dict) -> dict:
@@ -113,7 +114,20 @@ def _upgrade_6(state: dict) -> dict:
     return state
 
 
-UPGRADES = {1: _upgrade_1, 2: _upgrade_2, 3: _upgrade_3, 4: _upgrade_4, 5: _upgrade_5, 6: _upgrade_6}  # format n -> n + 1
+def _upgrade_7(state: dict) -> dict:
+    """Format 7 -> 8: DAgger (``train.pretrain_dagger_*``) and the self-play ``env.scale_geometry`` appeared;
+    a run before them had no rounds and its square as configured."""
+    cfg = state["config"]
+    if "train" in cfg:
+        for key in ("pretrain_dagger_rounds", "pretrain_dagger_frames"):
+            cfg["train"].setdefault(key, PRETRAIN_DEFAULTS[key])
+    if cfg.get("env", {}).get("name") == "selfplay":
+        cfg["env"].setdefault("scale_geometry", False)
+    return state
+
+
+UPGRADES = {1: _upgrade_1, 2: _upgrade_2, 3: _upgrade_3, 4: _upgrade_4, 5: _upgrade_5, 6: _upgrade_6,
+            7: _upgrade_7}  # format n -> n + 1
 
 
 def upgrade(state: dict, version: int) -> dict:
