@@ -12,7 +12,7 @@ import torch
 
 from crowdbench.algos.value import ValueModel, ValuePolicy, epsilon, gamma_bar
 from crowdbench.algos.value_train import discounted_returns, last_steps, td_targets
-from crowdbench.envs.core import SUCCESS
+from crowdbench.envs.core import RUNNING, SUCCESS
 from crowdbench.envs.crowdnav import CrowdNavConfig
 from crowdbench.envs.factory import crowdnav_world
 from crowdbench.envs.lookahead import action_set, candidates, lookahead_observation, next_humans
@@ -86,6 +86,31 @@ def test_query_next_humans_are_the_worlds_bit_for_bit():
     with pytest.raises(ValueError, match="invisible"):
         next_humans(crowd_world(visible=True, steps=0), "query")
 
+
+
+def test_query_on_recorded_pedestrians_is_the_next_frame():
+    """On a replay world (protocol v1: the humans never see the robot) ``query`` is the recorded next frame,
+    position, velocity and presence, and reading it leaves the world's clock where it was."""
+    from worlds import replay_sim, reset_v1
+
+    from crowdbench.data.scenes import load_scene
+    from crowdbench.envs.core import SimConfig
+
+    scene = load_scene("zara1")
+    world = replay_sim(scene, 4, SimConfig(dt=scene.dt, frame="rotate"))
+    t0 = torch.tensor([0, 40, 200, 400])
+    reset_v1(world, torch.ones(4, dtype=torch.bool), t0, torch.tensor([0.0, 1.0, 2.0, 3.0]))
+    for _ in range(5):
+        pos, vel, valid = next_humans(world, "query")
+        t = world.crowd.t.clone()
+        t1 = torch.where((world.outcome == RUNNING).any(-1), t + 1, t)  # a finished episode's clock stops
+        assert torch.equal(pos, scene.pos[t1]) and torch.equal(vel, scene.vel[t1])
+        assert torch.equal(valid, scene.valid[t1]) and torch.equal(world.crowd.t, t)
+        world.step(torch.zeros(4, 1, 2))
+        assert torch.equal(pos, world.humans()[0]) and torch.equal(vel, world.humans()[1])
+    assert valid.any() and vel.abs().sum() > 0  # pedestrians present and walking: not a vacuous comparison
+    c = candidates(world, action_set(1.0), "query")
+    assert c["humans_pos"].shape == (4, scene.max_humans, 2)
 
 def test_lookahead_observation_is_the_candidates_in_the_robot_frame():
     world = crowd_world()

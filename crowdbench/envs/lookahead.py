@@ -67,8 +67,9 @@ def next_humans(world, model: str):
     # the crowd's advance replaces its tensors (never writes into them): a shallow copy leaves the world's intact;
     # the same batch and active mask as World.step, so the same arithmetic and the same bits
     crowd = copy.copy(world.crowd)
-    _, h1, hv1 = crowd.advance((world.outcome == RUNNING).any(-1), world.agents())
-    return h1, crowd.vel, hv1
+    crowd.advance((world.outcome == RUNNING).any(-1), world.agents())
+    # what the crowd reports after the step (replay: the recorded velocity at t+1; reactive: its new velocity)
+    return crowd.observe()
 
 
 def candidates(world, actions: torch.Tensor, model: str) -> dict[str, torch.Tensor]:
