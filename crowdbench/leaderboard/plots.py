@@ -35,7 +35,7 @@ def _bars(ax, rows: list[tuple], title: str, xlabel: str, xlim=None) -> None:
         ax.barh(y, m, color=c, height=0.72, xerr=err, error_kw={"elinewidth": 0.9, "capsize": 2})
         ax.text(m if lo is None else hi, y, f" {m:.3f}", va="center", fontsize=6.5)
     ax.set_yticks(range(len(rows)), [r[0] for r in rows], fontsize=7.5)
-    ax.set_ylim(len(rows) - 0.5, -0.5)
+    ax.set_ylim(max(len(rows), 1) - 0.5, -0.5)  # an empty track: a blank panel, not a singular axis
     ax.set_title(title, fontsize=9)
     ax.set_xlabel(xlabel, fontsize=8)
     ax.tick_params(axis="x", labelsize=7)
