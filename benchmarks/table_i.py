@@ -19,8 +19,9 @@ from pathlib import Path
 from value_rows import PUBLISHED
 
 ROOT = Path(__file__).resolve().parent.parent
-NETS = [("cadrl", "CADRL"), ("lstm_rl", "LSTM-RL"), ("sarl", "SARL"), ("lm_sarl", "LM-SARL"),
-        ("gatedgcn", "MP-GatedGCN"), ("rgl", "RGL")]
+# (published key, the entry's label on the leaderboard, the name in the docs' tables)
+NETS = [("cadrl", "CADRL", "CADRL"), ("lstm_rl", "LSTM-RL", "LSTM-RL"), ("sarl", "SARL", "SARL"),
+        ("lm_sarl", "LM-SARL", "LM-SARL"), ("gatedgcn", "MP-GatedGCN", "MP-GatedGCN as V"), ("rgl", "RGL", "RGL as V")]
 CELLS = ("success", "collision", "nav time s")
 OTHER_TRACKS = ("crowdnav-square5", "crowdnav-circle20")
 NUM = re.compile(r"^(-?[\d.]+) \[(-?[\d.]+), (-?[\d.]+)\]$")
@@ -56,7 +57,7 @@ def success(row: dict | None) -> float | None:
 def table_i(rows: dict) -> list[str]:
     out = ["| method | published (Table I) | `query` (privileged, as published) | seeds | `cv` | seeds | `query` minus `cv` |",
            "|---|---|---|---|---|---|---|"]
-    for key, label in NETS:
+    for key, label, name in NETS:
         q, c = entry(rows, label, "query"), entry(rows, label, "cv")
         if q is None and c is None:
             continue
@@ -65,7 +66,7 @@ def table_i(rows: dict) -> list[str]:
         cs = " / ".join(cell(c, col) for col in CELLS) if c else "—"
         diff = f"{success(q) - success(c):+.3f}" if q and c else "—"
         published = " / ".join(f"{v:.2f}" for v in pub) if pub else "—"
-        out.append(f"| {label if key not in ('gatedgcn', 'rgl') else label + ' as V'} | {published} | {qs} | "
+        out.append(f"| {name} | {published} | {qs} | "
                    f"{q['seeds'] if q else '—'} | {cs} | {c['seeds'] if c else '—'} | {diff} |")
     return out
 
@@ -79,11 +80,10 @@ def other_tracks(text: str) -> list[str]:
             r = rows[label]
             out.append(f"| `{track}` | {label} | — | {r['seeds']} | {r['success']} | {r['collision']} | "
                        f"{r['timeout']} | {r['nav time s']} | {r['dangers/ep']} |")
-        for _, label in NETS:
+        for _, label, name in NETS:
             for look in ("query", "cv"):
                 r = entry(rows, label, look)
                 if r and r["trained on"] == track:
-                    name = f"{label} as V" if label in ("MP-GatedGCN", "RGL") else label
                     look_s = "query (privileged)" if look == "query" else "cv"
                     out.append(f"| `{track}` | {name} | {look_s} | {r['seeds']} | {r['success']} | {r['collision']} | "
                                f"{r['timeout']} | {r['nav time s']} | {r['dangers/ep']} |")

@@ -9,10 +9,12 @@ import math
 
 import pytest
 import torch
+from worlds import replay_sim, reset_v1
 
 from crowdbench.algos.value import ValueModel, ValuePolicy, epsilon, gamma_bar
 from crowdbench.algos.value_train import discounted_returns, last_steps, td_targets
-from crowdbench.envs.core import RUNNING, SUCCESS
+from crowdbench.data.scenes import load_scene
+from crowdbench.envs.core import RUNNING, SUCCESS, SimConfig
 from crowdbench.envs.crowdnav import CrowdNavConfig
 from crowdbench.envs.factory import crowdnav_world
 from crowdbench.envs.lookahead import action_set, candidates, lookahead_observation, next_humans
@@ -87,15 +89,9 @@ def test_query_next_humans_are_the_worlds_bit_for_bit():
         next_humans(crowd_world(visible=True, steps=0), "query")
 
 
-
 def test_query_on_recorded_pedestrians_is_the_next_frame():
     """On a replay world (protocol v1: the humans never see the robot) ``query`` is the recorded next frame,
     position, velocity and presence, and reading it leaves the world's clock where it was."""
-    from worlds import replay_sim, reset_v1
-
-    from crowdbench.data.scenes import load_scene
-    from crowdbench.envs.core import SimConfig
-
     scene = load_scene("zara1")
     world = replay_sim(scene, 4, SimConfig(dt=scene.dt, frame="rotate"))
     t0 = torch.tensor([0, 40, 200, 400])
@@ -111,6 +107,7 @@ def test_query_on_recorded_pedestrians_is_the_next_frame():
     assert valid.any() and vel.abs().sum() > 0  # pedestrians present and walking: not a vacuous comparison
     c = candidates(world, action_set(1.0), "query")
     assert c["humans_pos"].shape == (4, scene.max_humans, 2)
+
 
 def test_lookahead_observation_is_the_candidates_in_the_robot_frame():
     world = crowd_world()
