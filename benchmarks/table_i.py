@@ -6,8 +6,8 @@ Reads the ranked tables of ``leaderboard/TRACKS.md`` (written by ``crowdbench le
 seeds with their two-level bootstrap intervals) and prints, per value network, the published cells of
 CrowdNav's Table I, the ``query`` (privileged) and ``cv`` rows as success / collision / navigation time, and
 ``query`` minus ``cv``; then the same without published cells for the other CrowdNav tracks. ``--write``
-replaces the blocks between ``<!-- table-i:start -->`` / ``<!-- table-i:end -->`` and
-``<!-- value-tracks:start -->`` / ``<!-- value-tracks:end -->`` of the given file.
+replaces the generated blocks ``table-i`` and ``value-tracks`` of the given file (the leaderboard's markers,
+``<!-- generated:NAME:start -->`` / ``<!-- generated:NAME:end -->``).
 """
 
 from __future__ import annotations
@@ -17,6 +17,8 @@ import sys
 from pathlib import Path
 
 from value_rows import PUBLISHED
+
+from crowdbench.leaderboard.render import read_block, splice
 
 ROOT = Path(__file__).resolve().parent.parent
 # (published key, the entry's label on the leaderboard, the name in the docs' tables)
@@ -29,8 +31,7 @@ NUM = re.compile(r"^(-?[\d.]+) \[(-?[\d.]+), (-?[\d.]+)\]$")
 
 def track_rows(text: str, track: str) -> dict[str, dict[str, str]]:
     """``{method label: {column: cell}}`` of ``track``'s ranked table in TRACKS.md."""
-    block = text.split(f"<!-- generated:track-{track}:start -->")[1].split(f"<!-- generated:track-{track}:end -->")[0]
-    lines = [ln for ln in block.splitlines() if ln.startswith("|")]
+    lines = [ln for ln in read_block(text, f"track-{track}").splitlines() if ln.startswith("|")]
     head = [c.strip() for c in lines[0].strip("|").split("|")]
     return {row["method"]: row for row in
             (dict(zip(head, (c.strip() for c in ln.strip("|").split("|")))) for ln in lines[2:])}
@@ -90,12 +91,9 @@ def other_tracks(text: str) -> list[str]:
     return out
 
 
-def replace_block(doc: str, tag: str, lines: list[str]) -> str:
-    start, end = f"<!-- {tag}:start -->", f"<!-- {tag}:end -->"
-    if start not in doc or end not in doc:
-        raise SystemExit(f"{tag}: markers {start} / {end} not found")
-    head, rest = doc.split(start)
-    return head + start + "\n\n" + "\n".join(lines) + "\n\n" + end + rest.split(end)[1]
+def replace_block(doc: str, name: str, lines: list[str]) -> str:
+    """``doc`` with its generated block ``name`` holding ``lines``."""
+    return splice(doc, "\n\n" + "\n".join(lines) + "\n\n", name)
 
 
 def main(argv: list[str]) -> None:
