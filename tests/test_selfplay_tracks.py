@@ -140,3 +140,28 @@ def test_the_track_table_rendered_from_hand_made_results():
     assert "published list circle_n4" in "\n".join(lines) and "![selfplay-circle4, ranked]" in "\n".join(lines)
     text = render_tracks({"selfplay-circle4": results}, [], None, [], [])
     assert "<!-- generated:track-selfplay-circle4:start -->" in text and "generated:transfer" not in text
+
+
+def test_the_docs_selfplay_table_is_the_leaderboards():
+    """docs/selfplay.md's track table is what benchmarks/selfplay_table.py makes of the committed TRACKS.md:
+    one row per self-play track, ORCA and every entry trained in self-play, best learned minus ORCA."""
+    import importlib
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    sys.path.insert(0, str(root / "benchmarks"))
+    try:
+        table = importlib.import_module("selfplay_table")
+    finally:
+        sys.path.remove(str(root / "benchmarks"))
+    text = (root / "leaderboard" / "TRACKS.md").read_text()
+    lines = table.selfplay_table(text)
+    assert [ln.split(" | ")[0] for ln in lines[4:]] == [f"| `{track_name(s)}`" for s, _ in SETTINGS]
+    circle4 = table.track_rows(text, "selfplay-circle4")
+    best = max(table.mean(r["success"]) for r in circle4.values() if r["trained on"] == "selfplay")
+    assert lines[4].split(" | ")[1] == circle4["ORCA"]["success"]
+    assert f"| {best - table.mean(circle4['ORCA']['success']):+.3f} |" in lines[4]
+    doc = (root / "docs" / "selfplay.md").read_text()
+    assert doc == table.replace_block(doc, "selfplay-tracks", lines), \
+        "docs/selfplay.md: run python benchmarks/selfplay_table.py --write docs/selfplay.md"
