@@ -8,10 +8,16 @@ failure, so CI never passes by silently skipping them.
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
+from collections import defaultdict
+from pathlib import Path
 
 import pytest
+
+# seconds per test of a recent run (`pytest --full --store-durations`): the suite starts the longest first
+DURATIONS = Path(__file__).with_name("durations.json")
 
 # pytest-xdist runs one test process per core (pyproject's addopts): a torch thread pool in each would
 # oversubscribe the cores, and OpenMP's spinning threads then slow every test several-fold
@@ -30,6 +36,8 @@ SYSTEM = {  # program -> (Debian package, install command)
 
 def pytest_addoption(parser):
     parser.addoption("--full", action="store_true", help="also run the tests marked slow (what CI runs)")
+    parser.addoption("--store-durations", action="store_true",
+                     help=f"record each test's seconds in {DURATIONS.name} (read to start the longest first)")
 
 
 def pytest_configure(config):
@@ -37,12 +45,39 @@ def pytest_configure(config):
 
 
 def pytest_collection_modifyitems(config, items):
-    if config.getoption("--full"):
-        return
-    slow = [i for i in items if i.get_closest_marker("slow")]
-    if slow:
-        config.hook.pytest_deselected(items=slow)
-        items[:] = [i for i in items if not i.get_closest_marker("slow")]
+    if not config.getoption("--full"):
+        slow = [i for i in items if i.get_closest_marker("slow")]
+        if slow:
+            config.hook.pytest_deselected(items=slow)
+            items[:] = [i for i in items if not i.get_closest_marker("slow")]
+    longest_first(items)
+
+
+def longest_first(items) -> None:
+    """Order the test files by their recorded seconds, longest first, each file's tests in their own order.
+    Why: pytest-xdist hands the tests to its workers in this order, so a long file started last would run
+    alone on one core while the other idles. Files stay whole so that a module-scoped fixture is built
+    once per worker, as in file order; files without a record come last (the sort is stable)."""
+    known = json.loads(DURATIONS.read_text()) if DURATIONS.is_file() else {}
+    weight: dict[str, float] = defaultdict(float)
+    for item in items:
+        weight[item.nodeid.split("::")[0]] += known.get(item.nodeid, 0.0)
+    items.sort(key=lambda i: -weight[i.nodeid.split("::")[0]])
+
+
+_SECONDS: dict[str, float] = defaultdict(float)
+
+
+def pytest_runtest_logreport(report):
+    _SECONDS[report.nodeid] += report.duration  # setup + call + teardown
+
+
+def pytest_sessionfinish(session):
+    if not session.config.getoption("--store-durations") or hasattr(session.config, "workerinput"):
+        return  # the xdist controller writes what its workers reported
+    known = json.loads(DURATIONS.read_text()) if DURATIONS.is_file() else {}
+    known.update({k: round(v, 2) for k, v in _SECONDS.items()})
+    DURATIONS.write_text(json.dumps(dict(sorted(known.items())), indent=0) + "\n")
 
 
 def require_system(program: str, available: bool | None = None) -> None:
