@@ -51,7 +51,7 @@ def selfplay_table(text: str) -> list[str]:
         best = max((mean(r["success"]) for r in got if r), default=None)
         diff = f"{best - mean(orca['success']):+.3f}" if best is not None else "—"
         cells = [f"`{track_name(setting)}`", orca["success"],
-                 *(f"{r['success']}, {r['seeds']} seeds" if r else "—" for r in got), diff,
+                 *(f"{r['success']}, {r['seeds']} seed{'s' * (r['seeds'] != '1')}" if r else "—" for r in got), diff,
                  orca["agent dangers"], *(r["agent dangers"] if r else "—" for r in got)]
         out.append("| " + " | ".join(cells) + " |")
     return out

@@ -142,19 +142,15 @@ def test_the_track_table_rendered_from_hand_made_results():
     assert "<!-- generated:track-selfplay-circle4:start -->" in text and "generated:transfer" not in text
 
 
-def test_the_docs_selfplay_table_is_the_leaderboards():
+def test_the_docs_selfplay_table_is_the_leaderboards(monkeypatch):
     """docs/selfplay.md's track table is what benchmarks/selfplay_table.py makes of the committed TRACKS.md:
     one row per self-play track, ORCA and every entry trained in self-play, best learned minus ORCA."""
     import importlib
-    import sys
     from pathlib import Path
 
     root = Path(__file__).resolve().parent.parent
-    sys.path.insert(0, str(root / "benchmarks"))
-    try:
-        table = importlib.import_module("selfplay_table")
-    finally:
-        sys.path.remove(str(root / "benchmarks"))
+    monkeypatch.syspath_prepend(str(root / "benchmarks"))  # the scripts import each other by their file names
+    table = importlib.import_module("selfplay_table")
     text = (root / "leaderboard" / "TRACKS.md").read_text()
     lines = table.selfplay_table(text)
     assert [ln.split(" | ")[0] for ln in lines[4:]] == [f"| `{track_name(s)}`" for s, _ in SETTINGS]
