@@ -76,7 +76,9 @@ def pytest_sessionfinish(session):
     if not session.config.getoption("--store-durations") or hasattr(session.config, "workerinput"):
         return  # the xdist controller writes what its workers reported
     known = json.loads(DURATIONS.read_text()) if DURATIONS.is_file() else {}
-    known.update({k: round(v, 2) for k, v in _SECONDS.items()})
+    # tests under half a second do not change the order: kept out, the file stays short
+    known = {k: v for k, v in known.items() if k not in _SECONDS}
+    known.update({k: round(v, 2) for k, v in _SECONDS.items() if v >= 0.5})
     DURATIONS.write_text(json.dumps(dict(sorted(known.items())), indent=0) + "\n")
 
 
