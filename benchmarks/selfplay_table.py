@@ -14,7 +14,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from table_i import NUM, replace_block, track_rows
+from table_i import replace_block, success, track_rows
 
 from crowdbench.protocols.selfplay_tracks import SETTINGS, track_name
 
@@ -26,14 +26,12 @@ def learned(rows: dict) -> list[str]:
     return [label for label, r in rows.items() if r["trained on"] == "selfplay"]
 
 
+PREFIX = "MP-GatedGCN-RL self-play ("
+
+
 def short(label: str) -> str:
     """``MP-GatedGCN-RL self-play (TD3, ORCA warm start)`` -> ``TD3, ORCA warm start``."""
-    return label.removeprefix("MP-GatedGCN-RL self-play (").removesuffix(")") if label.startswith(
-        "MP-GatedGCN-RL self-play (") else label
-
-
-def mean(cell: str) -> float:
-    return float(NUM.match(cell).group(1))
+    return label.removeprefix(PREFIX).removesuffix(")") if label.startswith(PREFIX) else label
 
 
 def selfplay_table(text: str) -> list[str]:
@@ -48,8 +46,8 @@ def selfplay_table(text: str) -> list[str]:
         rows = tables[setting]
         orca = rows["ORCA"]
         got = [rows.get(label) for label in labels]
-        best = max((mean(r["success"]) for r in got if r), default=None)
-        diff = f"{best - mean(orca['success']):+.3f}" if best is not None else "—"
+        best = max((success(r) for r in got if r), default=None)
+        diff = f"{best - success(orca):+.3f}" if best is not None else "—"
         cells = [f"`{track_name(setting)}`", orca["success"],
                  *(f"{r['success']}, {r['seeds']} seed{'s' * (r['seeds'] != '1')}" if r else "—" for r in got), diff,
                  orca["agent dangers"], *(r["agent dangers"] if r else "—" for r in got)]
