@@ -51,6 +51,7 @@ class ValueConfig:
     train_batches: float = bounded(100.0, ge=0)  # gradient steps per finished episode
     batch_size: int = bounded(100, ge=1)
     capacity: int = bounded(100000, ge=1)
+    thin: float = bounded(0.0, ge=0, le=1)  # training-only: each episode removes each recorded human w.p. u ~ U(0, thin)
     store_timeouts: bool = False  # true: also learn from timed-out episodes (bootstrapped; not CrowdNav's)
     target_update: int = bounded(50, ge=1)  # episodes between target-network refreshes
     epsilon_start: float = bounded(0.5, ge=0, le=1)

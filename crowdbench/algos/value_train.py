@@ -43,12 +43,27 @@ def td_targets(reward: torch.Tensor, next_value: torch.Tensor, last: torch.Tenso
     return reward + g * next_value * ~last
 
 
-def run_round(model: ValueModel, world, episodes: dict, act) -> dict[str, torch.Tensor]:
-    """``B`` episodes of ``world`` from ``episodes``; ``act(obs, running [B]) -> action [B, 1, 2]``.
-    Returns the net inputs ``x [T, B, M, D]``, ``mask [T, B, M]``, ``reward [T, B]``, ``active [T, B]`` and
-    ``outcome [B]``."""
+def thin_draw(world, p: float, gen: torch.Generator) -> torch.Tensor | None:
+    """``algo.thin``: each episode draws ``u ~ U(0, p)`` and removes each recorded human with probability ``u``
+    (``[B, M]`` slots kept; None when ``p`` is 0). Unlike TD3's ``train.human_dropout``, which hides humans from
+    the observation only, a removed human is absent from the world too: the returns V is fitted to stay the
+    returns of the crowd it sees. The dense training scene thereby also shows sparse crowds."""
+    if not p:
+        return None
+    if not hasattr(world.crowd, "keep"):
+        raise ValueError("algo.thin needs recorded humans (env=replay with env.humans=replay)")
+    u = torch.rand(world.B, 1, generator=gen) * p
+    return torch.rand(world.B, world.Mh, generator=gen) >= u
+
+
+def run_round(model: ValueModel, world, episodes: dict, act, keep: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    """``B`` episodes of ``world`` from ``episodes``; ``act(obs, running [B]) -> action [B, 1, 2]``; ``keep``:
+    the recorded humans present (:func:`thin_draw`; None: all). Returns the net inputs ``x [T, B, M, D]``,
+    ``mask [T, B, M]``, ``reward [T, B]``, ``active [T, B]`` and ``outcome [B]``."""
     B = world.B
     world.reset(torch.ones(B, dtype=torch.bool), episodes)
+    if keep is not None or hasattr(world.crowd, "keep"):
+        world.crowd.keep = keep
     xs, masks, rewards, actives = [], [], [], []
     for _ in range(world.cfg.time_limit):
         running = world.outcome[:, 0] == RUNNING
@@ -159,9 +174,10 @@ def imitation(cfg, model: ValueModel, world, sampler, memory: ReplayBuffer, log)
     a, t0 = cfg.algo, time.perf_counter()
     orca = demonstrator(cfg)
     act = lambda obs, running: orca.act(obs_tensordict(obs, world.B))
+    gen = torch.Generator().manual_seed(int(cfg.seed) + 7919)  # (thinning only)
     done = success = pairs = frames = 0
     while done < a.il_episodes:
-        r = run_round(model, world, sampler(world.B), act)
+        r = run_round(model, world, sampler(world.B), act, thin_draw(world, float(a.thin), gen))
         frames += int(r["active"].sum())
         pairs += store(memory, r, discounted_returns(r["reward"], model.gamma_bar))
         success += int((r["outcome"] == SUCCESS).sum())
@@ -196,6 +212,7 @@ def validate(model: ValueModel, world, episodes: dict) -> dict:
             "nav_time": float(t[ok].mean()) if ok.any() else float("nan")}
 
 
+VALUE_WORLDS = ("crowdnav", "replay")  # one robot: CrowdNav's cases, or a replayed scene (protocols v1 / v2)
 RESUME_FILE = "resume.pt"  # deep V-learning's whole state: a stopped run continues from it (resume=true)
 SNAPSHOT_S = 60.0  # s between snapshots (the memory is ~25 MB at capacity; Ctrl-C writes one too)
 
@@ -234,7 +251,8 @@ def rl_round(lr: Learner, world, val_episodes, log) -> None:
     a, model, B = lr.cfg.algo, lr.model, world.B
     eps = epsilon(lr.done + torch.arange(B), a.epsilon_start, a.epsilon_end, a.epsilon_decay)
     model.net.eval()
-    r = run_round(model, world, lr.sampler(B), lookahead_act(model, world, eps, lr.gen))
+    look = lookahead_act(model, world, eps, lr.gen)
+    r = run_round(model, world, lr.sampler(B), look, thin_draw(world, float(a.thin), lr.gen))
     stored = store(lr.memory, r, round_targets(r, lr.target, model.gamma_bar), bool(a.store_timeouts))
     lr.frames += int(r["active"].sum())
     lr.credit += a.train_batches * B  # gradient steps owed: train_batches per finished episode
@@ -321,7 +339,7 @@ class Best:
 
 
 def train_value(cfg, out_dir, log=print, resume: bool = False) -> dict:
-    """Imitation then deep V-learning per ``cfg`` (``algo=value``, ``env=crowdnav``); writes
+    """Imitation then deep V-learning per ``cfg`` (``algo=value``, ``env=crowdnav`` or ``env=replay``); writes
     ``out_dir/checkpoint.pt`` (config + the value network as ``actor``) and ``out_dir/train_log.jsonl``; returns the stats.
     ``resume``: continue deep V-learning from ``out_dir/resume.pt`` (the imitation is never repeated)."""
     import json
@@ -332,8 +350,8 @@ def train_value(cfg, out_dir, log=print, resume: bool = False) -> dict:
     from crowdbench.algos.checkpoint import save_checkpoint
     from crowdbench.envs.factory import env_name, make_world
 
-    if env_name(cfg.env) != "crowdnav":
-        raise ValueError("algo=value runs on env=crowdnav (its reward and test cases are CrowdNav's)")
+    if env_name(cfg.env) not in VALUE_WORLDS:
+        raise ValueError(f"algo=value runs on env={' or env='.join(VALUE_WORLDS)} (one robot), got env={env_name(cfg.env)}")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(int(cfg.get("cpus", 1)))

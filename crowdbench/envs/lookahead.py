@@ -75,7 +75,7 @@ def next_humans(world, model: str):
 def candidates(world, actions: torch.Tensor, model: str) -> dict[str, torch.Tensor]:
     """Every action of ``actions`` ``[K, 2]`` (robot frame) for robot 0 of every environment, world frame:
     ``robot_pos``/``robot_vel`` ``[B, K, 2]``, ``humans_pos``/``humans_vel`` ``[B, M, 2]``, ``humans_valid``
-    ``[B, M]``, ``reward`` ``[B, K]`` (the world's reward of that step), ``done`` ``[B, K]`` (success or collision)."""
+    ``[B, M]`` (present and within the sensing range now: what the robot observes), ``reward`` ``[B, K]`` (the world's reward of that step), ``done`` ``[B, K]`` (success or collision)."""
     cfg = world.cfg
     B, K = world.B, actions.shape[0]
     pos, goal, heading = world.pos[:, 0], world.goal[:, 0], world.heading[:, 0]  # [B, 2]
@@ -85,7 +85,7 @@ def candidates(world, actions: torch.Tensor, model: str) -> dict[str, torch.Tens
     active = world.outcome[:, :1] == RUNNING  # [B, 1]
     vel = vel * active.unsqueeze(-1)
     new_pos = advance(pos.unsqueeze(1), vel, cfg.dt)  # [B, K, 2]
-    h0 = world.humans()[0]
+    h0, _, valid0 = world.humans()
     h1, hv, hvalid = next_humans(world, model)
     swept = (segment_min_distance(h0.unsqueeze(1) - pos[:, None, None], h1.unsqueeze(1) - new_pos.unsqueeze(2))
              - world.radius_sum).masked_fill(~hvalid.unsqueeze(1), _FAR)  # [B, K, M]
@@ -97,7 +97,9 @@ def candidates(world, actions: torch.Tensor, model: str) -> dict[str, torch.Tens
     success = active & ~collision & ((goal.unsqueeze(1) - new_pos).norm(dim=-1) < cfg.robot_radius)
     timeout = active & ~collision & ~success & (world.steps + 1 >= cfg.time_limit).unsqueeze(-1)
     reward = step_reward(cfg, end, swept, success, collision, timeout, active)
-    return {"robot_pos": new_pos, "robot_vel": vel, "humans_pos": h1, "humans_vel": hv, "humans_valid": hvalid,
+    # V(s') reads the humans the robot senses now (the reward above is the world's: every human counts)
+    seen = hvalid & valid0 & ((h0 - pos.unsqueeze(1)).norm(dim=-1) <= cfg.sensing_range)
+    return {"robot_pos": new_pos, "robot_vel": vel, "humans_pos": h1, "humans_vel": hv, "humans_valid": seen,
             "reward": reward, "done": success | collision}
 
 

@@ -23,6 +23,9 @@ from crowdbench.data.scenes import Scene, load_scene
 from crowdbench.envs.core import START_CLEARANCE, SimConfig, free_start, int_option
 from crowdbench.envs.protocol import TrainSampler
 
+VAL_SEED = 2**31 - 1  # the validation stream's seed (training seeds are small integers)
+VAL_EPISODES = 100  # as CrowdNav's validation set
+
 
 def replay_scene(name: str, cfg: SimConfig) -> Scene:
     """Scene ``name`` resampled at ``cfg.dt``; an error if it is too short for one episode."""
@@ -77,6 +80,14 @@ class ReplayScenario:
 
     def sampler(self, seed: int) -> ReplaySampler:
         return ReplaySampler(self, seed)
+
+    def test_list(self, phase: str = "val") -> dict[str, torch.Tensor]:
+        """``phase="val"``: :data:`VAL_EPISODES` episodes of the training scene drawn from a stream no training
+        seed uses (``algo=value``'s network selection; never the evaluation scenes). The evaluation lists are
+        the protocol's (crowdbench/protocols/lists.py)."""
+        if phase != "val":
+            raise ValueError(f"a replay scenario has only the 'val' list (the protocol's lists are the test), got {phase!r}")
+        return self.sampler(VAL_SEED)(VAL_EPISODES)
 
 
 class ReplaySampler:

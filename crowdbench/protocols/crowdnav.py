@@ -26,6 +26,7 @@ from crowdbench.protocols.base import Protocol, Track
 from crowdbench.protocols.engine import (
     aggregate,
     episode_metrics,
+    privilege_labels,
     robot_traces,
     select_episodes,
     write_results,
@@ -87,13 +88,7 @@ def evaluate_crowdnav(policy: Policy, cfg: CrowdNavConfig, settings=None, episod
                          "available with env.robot_visible=false only")
     results = {"protocol": PROTOCOL if phase == "test" else f"{PROTOCOL}-{phase}", "policy": policy.name, "meta": meta or {}, "numerics": describe(),
                "humans": cfg.humans, "robot_visible": cfg.robot_visible, "scenes": {}, "lists": {}}
-    if privileged:
-        results["privileged"] = True
-    look = getattr(policy, "lookahead", None)
-    if look is not None:  # a value-lookahead policy: which model of the humans' next state it was handed
-        results["lookahead"] = look[0]
-        if getattr(policy, "privileged_lookahead", False):
-            results["privileged"] = True  # the simulator's true next human states (CrowdNav's query_env)
+    results.update(privilege_labels(policy))
     rows = []
     for name, (scenario, n) in zip(settings, parsed, strict=True):
         c = replace(cfg, scenario=scenario, n_humans=n, frame=policy.frame)

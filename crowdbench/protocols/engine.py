@@ -81,6 +81,19 @@ def select_episodes(saved: dict, n: int | None) -> list[dict]:
 
 
 @torch.no_grad()
+def privilege_labels(policy: Policy) -> dict:
+    """What a results file says about what ``policy`` was handed: ``privileged`` (the oracle's plan from the
+    humans' future, or a value lookahead reading the simulator's next human states) and ``lookahead`` (the
+    humans' next-state model of a value-lookahead policy's candidates)."""
+    out = {"privileged": True} if getattr(policy, "privileged", False) else {}
+    look = getattr(policy, "lookahead", None)
+    if look is not None:
+        out["lookahead"] = look[0]
+        if getattr(policy, "privileged_lookahead", False):
+            out["privileged"] = True
+    return out
+
+
 def drive(env: CrowdEnv, policy: Policy, recorder=None, on_reset=None, on_step=None, privileged_view=None) -> None:
     """The evaluation loop of every protocol: reset ``env`` (its fixed episode list, one episode per
     environment), then step it with ``policy`` until every agent is done or the time limit.

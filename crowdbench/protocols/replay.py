@@ -34,6 +34,7 @@ from crowdbench.protocols.base import Protocol, Track
 from crowdbench.protocols.engine import (
     aggregate,
     episode_metrics,
+    privilege_labels,
     robot_traces,
     select_episodes,
     write_results,
@@ -92,8 +93,7 @@ def evaluate(policy: Policy, scenes=PAPER_SCENES, episodes: int | None = None, o
                "scenes": {}}
     if humans is not None:
         results["humans"] = humans
-    if getattr(policy, "privileged", False):
-        results["privileged"] = True
+    results.update(privilege_labels(policy))
     rows = []
     for scene in scenes:
         saved = load_episodes(scene) if humans is None else load_episodes_v2(scene)

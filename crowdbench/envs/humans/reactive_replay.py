@@ -106,6 +106,7 @@ class ReactiveReplayCrowd:
     """The humans of ``scene`` replayed reactively (module docstring). Episode key: ``t0`` ``[n]``, as replay."""
 
     name = "reactive_replay"
+    robot_visible = True  # the humans yield to the robot (a value lookahead's `query` is refused here)
 
     def __init__(self, scene: Scene, batch: int, time_limit: int, dt: float, human_radius: float,
                  robot_radius: float, params: ReactiveParams | None = None, sfm: SFMParams | None = None):

@@ -22,6 +22,9 @@ class ReplayCrowd:
         self.scene, self.M = scene, scene.max_humans
         self.last_start = scene.last_start(time_limit)
         self.t = torch.zeros(batch, dtype=torch.long)
+        # [B, M] or None: training-only thinning (algo=value's algo.thin): a slot that is False is absent
+        # from the episode (not seen, not hit); evaluation never sets it
+        self.keep: torch.Tensor | None = None
 
     def reset(self, mask: torch.Tensor, idx: torch.Tensor, episode: dict) -> None:
         t0 = episode["t0"].long()
@@ -30,13 +33,17 @@ class ReplayCrowd:
         self.t[idx] = t0
 
     def observe(self):
-        return self.scene.pos[self.t], self.scene.vel[self.t], self.scene.valid[self.t]
+        return self.scene.pos[self.t], self.scene.vel[self.t], self._valid(self.t)
 
     def advance(self, env_active: torch.Tensor, agents=None):
         # humans present at t1, moving from their previous position (their spawn point if they just appeared)
         t1 = torch.where(env_active, self.t + 1, self.t)
         self.t = t1
-        return self.scene.prev[t1], self.scene.pos[t1], self.scene.valid[t1]
+        return self.scene.prev[t1], self.scene.pos[t1], self._valid(t1)
+
+    def _valid(self, t: torch.Tensor) -> torch.Tensor:
+        valid = self.scene.valid[t]
+        return valid if self.keep is None else valid & self.keep
 
 
 class NoCrowd:
