@@ -64,7 +64,7 @@ def test_the_value_replay_experiment_composes_to_its_recipe():
     cfg = compose(["experiment=value_replay"])
     assert (cfg.env.name, cfg.env.scene, cfg.env.humans) == ("replay", "students001", "replay")
     assert (cfg.algo.name, cfg.algo.net, cfg.encoder.name, cfg.algo.lookahead) == ("value", "encoder", "gatedgcn", "cv")
-    assert (cfg.algo.il_episodes, cfg.algo.max_minutes, cfg.algo.keep_best, cfg.cpus) == (960, 7, True, 1)
+    assert (cfg.algo.il_episodes, cfg.algo.max_minutes, cfg.algo.keep_best, cfg.algo.thin, cfg.cpus) == (960, 7, True, 0.8, 1)
     assert cfg.submission.name == "gatedgcn_value_cv_replay_s0"
 
 
@@ -128,3 +128,29 @@ def test_thinning_removes_humans_from_the_world_for_the_episode():
     seen.clear()
     run_round(model, world, eps, act)
     assert world.crowd.keep is None and any((s & ~keep).any() for s in seen)
+
+
+@pytest.mark.parametrize("name", ["cadrl", "sarl", "lm_sarl", "gatedgcn", "rgl", "gcn", "gat", "dsrnn"])
+def test_dropping_absent_slots_leaves_the_values(name):
+    """The networks cut the slots no row holds (``compact``); a batch with one full row is not cut: the other
+    rows' values agree with and without the cut (absent humans, rows without any human included)."""
+    from omegaconf import OmegaConf
+
+    from crowdbench.models.value_nets import JOINT_DIM, build_value_net, compact
+
+    torch.manual_seed(0)
+    net_name, enc = (name, None) if name in ("cadrl", "sarl", "lm_sarl") else ("encoder", None)
+    if net_name == "encoder":
+        enc = OmegaConf.to_container(compose([f"encoder={name}"]).encoder, resolve=True)
+    net = build_value_net(net_name, enc).eval()
+    N, M = 32, 24
+    D = JOINT_DIM + (48 if name == "lm_sarl" else 0)
+    x, mask = torch.randn(N, M, D), torch.rand(N, M) < 0.25
+    mask[:4] = False  # rows that sense nobody
+    x[:, :, :6] = x[:, :1, :6]  # the self-state is every slot's
+    cut_x, cut_m = compact(x, mask)
+    assert cut_m.shape[1] == int(mask.sum(-1).max()) < M and torch.equal(cut_m.sum(-1), mask.sum(-1))
+    with torch.no_grad():
+        got = net(x, mask)
+        full = net(torch.cat((x, x[:1])), torch.cat((mask, torch.ones(1, M, dtype=torch.bool))))[:N]
+    assert torch.allclose(got, full, atol=1e-6, rtol=0), float((got - full).abs().max())

@@ -35,6 +35,21 @@ SELF_DIM, JOINT_DIM = 6, 13
 NETS = ("cadrl", "lstm_rl", "sarl", "lm_sarl", "encoder")
 
 
+def compact(state: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``state [N, M, D]``, ``mask [N, M]`` with each row's real humans first (in their order) and the slots past
+    the most any row holds dropped: on a replayed scene the robot senses ~20 of 51-75 slots, and the graph
+    encoders' cost grows with the square of the slots. A no-op when some row holds every slot (CrowdNav). The
+    networks below read every human through ``mask`` (an absent one contributes nothing), so the values are
+    the same up to the order of float sums (checked in tests/test_value_replay.py); the self-state of slot 0
+    is every slot's."""
+    M = mask.shape[-1]
+    n = max(int(mask.sum(-1).max()), 1) if M else 0
+    if n >= M:
+        return state, mask
+    order = torch.argsort((~mask).to(torch.int8), dim=-1, stable=True)[:, :n]
+    return state.gather(1, order.unsqueeze(-1).expand(*order.shape, state.shape[-1])), mask.gather(1, order)
+
+
 def _unit(v: torch.Tensor) -> torch.Tensor:
     """Unit vector of ``v`` ``[..., 2]``; the x axis where ``v`` is zero (CrowdNav's ``atan2(0, 0) = 0``)."""
     n = v.norm(dim=-1, keepdim=True)
@@ -89,6 +104,7 @@ class CADRLValue(nn.Module):
         self.net = mlp(JOINT_DIM, dims)
 
     def forward(self, state, mask):
+        state, mask = compact(state, mask)
         v = self.net(state).squeeze(-1)  # [N, M]: the value with each human alone
         # the most dangerous human decides; without humans the network sees a zero human
         lone = self.net(torch.cat((state[:, :1, :SELF_DIM], torch.zeros_like(state[:, :1, SELF_DIM:])), -1)).squeeze(-1)
@@ -97,6 +113,8 @@ class CADRLValue(nn.Module):
 
 
 class LSTMRLValue(nn.Module):
+    """(No :func:`compact`: the LSTM reads the absent slots as zero steps, so its value depends on their count.)"""
+
     def __init__(self, hidden: int = 50, dims=(150, 100, 100, 1)):
         super().__init__()
         self.lstm = nn.LSTM(JOINT_DIM, hidden, batch_first=True)
@@ -122,6 +140,7 @@ class SARLValue(nn.Module):
         self.weights = None  # the attention of the last call [N, M]
 
     def forward(self, state, mask):
+        state, mask = compact(state, mask)
         e = self.mlp1(state)  # [N, M, E] pairwise features
         mf = mask.unsqueeze(-1).to(e.dtype)
         g = (e * mf).sum(1, keepdim=True) / mf.sum(1, keepdim=True).clamp_min(1.0)  # the crowd's global state
@@ -149,6 +168,7 @@ class EncoderValue(nn.Module):
         self.head = mlp(SELF_DIM + self.encoder.out_dim, (150, 100, 100, 1))
 
     def forward(self, state, mask):
+        state, mask = compact(state, mask)
         z = state.new_zeros(state.shape[0], 1)
         robot = torch.cat((z, z, state[:, 0, 4:6], state[:, 0, 0:1], z), -1)
         humans = state[..., 6:10] * mask.unsqueeze(-1)
