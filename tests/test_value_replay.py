@@ -66,6 +66,7 @@ def test_the_value_replay_experiment_composes_to_its_recipe():
     assert (cfg.algo.name, cfg.algo.net, cfg.encoder.name, cfg.algo.lookahead) == ("value", "encoder", "gatedgcn", "cv")
     assert (cfg.algo.il_episodes, cfg.algo.max_minutes, cfg.algo.keep_best, cfg.algo.thin, cfg.cpus) == (960, 7, True, 0.8, 1)
     assert cfg.submission.name == "gatedgcn_value_cv_replay_s0"
+    assert cfg.submission.entry == "MP-GatedGCN (value, cv lookahead, replay)"
 
 
 def test_a_value_run_on_replay_trains_evaluates_v1_and_the_checkpoint_again(tmp_path):
@@ -154,3 +155,25 @@ def test_dropping_absent_slots_leaves_the_values(name):
         got = net(x, mask)
         full = net(torch.cat((x, x[:1])), torch.cat((mask, torch.ones(1, M, dtype=torch.bool))))[:N]
     assert torch.allclose(got, full, atol=1e-6, rtol=0), float((got - full).abs().max())
+
+
+def test_candidates_valued_in_chunks_equal_one_pass():
+    """Where slots go unsensed the candidates are valued CHUNK environments at a time, densest last; the values
+    are those of one pass over the batch (to float rounding) and the greedy choices the same."""
+    from omegaconf import OmegaConf
+
+    from crowdbench.algos.value import CHUNK, ValueModel
+
+    cfg = compose(["experiment=value_replay", "env.scene=students003"])
+    torch.manual_seed(0)
+    model = ValueModel(cfg.algo, cfg.env, OmegaConf.to_container(cfg.encoder, resolve=True))
+    scene = load_scene("students003")
+    B = 2 * CHUNK + 5
+    world = replay_sim(scene, B, SimConfig(dt=scene.dt, frame="rotate"))
+    world.reset(torch.ones(B, dtype=torch.bool), world.scenario.sampler(3)(B))
+    obs = {**world.observe(), **lookahead_observation(world, model.actions, "cv")}
+    assert not obs["cand_humans_mask"].all() and obs["cand_humans_mask"].sum(-1).unique().numel() > 3
+    with torch.no_grad():
+        chunked, whole = model.candidate_values(obs), model._values(obs)
+    assert torch.allclose(chunked, whole, atol=1e-6, rtol=0)
+    assert torch.equal(chunked.argmax(-1), whole.argmax(-1))

@@ -62,6 +62,10 @@ class ValueConfig:
     max_minutes: float = bounded(0.0, ge=0)  # wall-time budget of the RL phase (0: none)
 
 
+CHUNK = 16  # environments per forward pass of the candidates where slots go unsensed (candidate_values)
+VALUE_KEYS = ("robot", "cand_robot", "cand_humans", "cand_humans_mask", "cand_reward", "cand_done")
+
+
 def epsilon(episode: torch.Tensor, start: float, end: float, decay: int) -> torch.Tensor:
     """CrowdNav's schedule: linear from ``start`` to ``end`` over ``decay`` episodes, then ``end``."""
     frac = episode.to(torch.float64).clamp(max=decay) / decay
@@ -95,7 +99,22 @@ class ValueModel:
         return x, mask
 
     def candidate_values(self, obs, net=None) -> torch.Tensor:
-        """``[B, K]``: ``r(s, a) + gamma_bar V(s'_a)`` of every candidate, one forward pass for all ``B x K``."""
+        """``[B, K]``: ``r(s, a) + gamma_bar V(s'_a)`` of every candidate, one forward pass for all ``B x K``; where
+        some slot goes unsensed (a replayed scene), :data:`CHUNK` environments per pass, the environments taken
+        by the number of humans they sense: each pass then drops the slots its environments leave empty
+        (:func:`~crowdbench.models.value_nets.compact`), and a batch of 250 evaluation episodes does not pay
+        for its densest one in every row. Where every slot is sensed (CrowdNav) it is one pass, as before."""
+        mask = obs["cand_humans_mask"][:, 0]
+        if mask.shape[0] <= CHUNK or mask.all():
+            return self._values(obs, net)
+        order = torch.argsort(mask.sum(-1), stable=True)
+        out = torch.empty(mask.shape[0], self.actions.shape[0])
+        for i in range(0, len(order), CHUNK):
+            rows = order[i:i + CHUNK]
+            out[rows] = self._values({k: obs[k][rows] for k in VALUE_KEYS}, net)
+        return out
+
+    def _values(self, obs, net=None) -> torch.Tensor:
         net = self.net if net is None else net
         robot, cr, ch = obs["robot"][:, 0], obs["cand_robot"][:, 0], obs["cand_humans"][:, 0]
         mask = obs["cand_humans_mask"][:, 0]  # [B, M]
