@@ -118,6 +118,10 @@ INVOCATIONS: dict[str, list[list[str]]] = {
         [["run", "env=crowdnav", "algo=value", "algo.batch=4", "algo.il_episodes=4", "algo.il_steps=3",
           "algo.episodes=4", "algo.train_batches=1", "algo.batch_size=8", "algo.val_every=0", "env.time_limit=20",
           "env.eval_episodes=3"]],
+    "crowdbench run experiment=value_replay":
+        [["run", "experiment=value_replay", "algo.batch=4", "algo.il_episodes=4", "algo.il_steps=3", "algo.episodes=4",
+          "algo.train_batches=1", "algo.batch_size=8", "algo.val_every=0", "algo.keep_best=false", "encoder.dim=8",
+          *EVAL]],
     "crowdbench run env=crowdnav algo=td3 encoder=gatedgcn":
         [["run", "env=crowdnav", "algo=td3", "encoder=gatedgcn", *RUN, "env.eval_episodes=2"]],
     "crowdbench eval env.humans=reactive_replay policy=orca\\|straight\\|RUN/checkpoint.pt":
