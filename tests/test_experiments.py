@@ -25,6 +25,8 @@ def training_config(cfg: dict) -> dict:
     out["train"].pop("max_minutes", None)  # a wall-time cap, not a training setting
     out["train"].pop("save_buffer", None)  # what a checkpoint holds, not how the run trains
     out["env"].pop("orca_backend", None)  # which ORCA solver computes the crowd (the same numbers), not what
+    if out["algo"].get("thin") == 0.0:  # algo=value's default, absent from checkpoints made before the option
+        out["algo"].pop("thin")
     if out["env"].get("sfm_backend") == "torch":  # the default, absent from checkpoints made before the option
         out["env"].pop("sfm_backend")  # (numba's social force is not torch's bit for bit: kept when set)
     return {**out, "seed": cfg["seed"]}
