@@ -151,6 +151,9 @@ def test_dropping_absent_slots_leaves_the_values(name):
     x[:, :, :6] = x[:, :1, :6]  # the self-state is every slot's
     cut_x, cut_m = compact(x, mask)
     assert cut_m.shape[1] == int(mask.sum(-1).max()) < M and torch.equal(cut_m.sum(-1), mask.sum(-1))
+    for i in range(N):  # each row's sensed humans first, in their order
+        k = int(mask[i].sum())
+        assert torch.equal(cut_x[i, :k], x[i, mask[i]]) and cut_m[i, :k].all() and not cut_m[i, k:].any()
     with torch.no_grad():
         got = net(x, mask)
         full = net(torch.cat((x, x[:1])), torch.cat((mask, torch.ones(1, M, dtype=torch.bool))))[:N]
