@@ -80,7 +80,7 @@ def test_every_shipped_config_combination_validates_and_every_key_has_a_schema_f
                     validate(cfg)
                 continue
             value_method = any(o.startswith("method=") and o.endswith("_value") for o in overrides)
-            value_exp = "experiment=value_crowdnav" in overrides
+            value_exp = any(f"experiment={e}" in overrides for e in ("value_crowdnav", "value_replay"))
             other_exp = any(f"experiment={e}" in overrides for e in OFF_POLICY_EXPERIMENTS)
             if value_method and other_exp or value_exp and not value_method and any(
                     o.startswith("method=") for o in overrides):
