@@ -69,8 +69,11 @@ def test_the_value_replay_experiment_composes_to_its_recipe():
     assert cfg.submission.entry == "MP-GatedGCN (value, cv lookahead, replay)"
 
 
-def test_a_value_run_on_replay_trains_evaluates_v1_and_the_checkpoint_again(tmp_path):
+def test_a_value_run_on_replay_trains_evaluates_v1_and_the_checkpoint_again(tmp_path, monkeypatch):
+    import crowdbench.envs.scenarios
     from crowdbench.cli import main
+
+    monkeypatch.setattr(crowdbench.envs.scenarios, "VAL_EPISODES", 4)  # the validation rounds, not their length
 
     tiny = ["env=replay", "method=sarl_value", "algo.lookahead=cv", "algo.batch=4", "algo.il_episodes=4",
             "algo.il_steps=3", "algo.episodes=4", "algo.train_batches=1", "algo.batch_size=8", "algo.val_every=4",
