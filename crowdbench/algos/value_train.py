@@ -26,6 +26,7 @@ from torchrl.data.replay_buffers import RandomSampler
 from crowdbench.algos.value import ValueModel, epsilon
 from crowdbench.envs.core import COLLISION, RUNNING, SUCCESS, TIMEOUT
 from crowdbench.envs.lookahead import lookahead_observation
+from crowdbench.envs.transforms import density_keep
 
 
 def discounted_returns(reward: torch.Tensor, g: float) -> torch.Tensor:
@@ -52,8 +53,7 @@ def thin_draw(world, p: float, gen: torch.Generator) -> torch.Tensor | None:
         return None
     if not hasattr(world.crowd, "keep"):
         raise ValueError("algo.thin needs recorded humans (env=replay with env.humans=replay)")
-    u = torch.rand(world.B, 1, generator=gen) * p
-    return torch.rand(world.B, world.Mh, generator=gen) >= u
+    return density_keep(world.B, world.Mh, p, gen)
 
 
 def run_round(model: ValueModel, world, episodes: dict, act, keep: torch.Tensor | None = None) -> dict[str, torch.Tensor]:

@@ -23,6 +23,13 @@ def _reset_mask(tensordict: TensorDictBase | None, batch: int) -> torch.Tensor:
     return torch.ones(batch, dtype=torch.bool)
 
 
+def density_keep(batch: int, n: int, p: float, gen: torch.Generator) -> torch.Tensor:
+    """``[batch, n]`` slots kept: each row draws ``u ~ U(0, p)`` and drops each slot with probability ``u``
+    (the density randomisation of :class:`HumanDropout` and of ``algo=value``'s ``algo.thin``)."""
+    u = torch.rand(batch, 1, generator=gen) * p
+    return torch.rand(batch, n, generator=gen) >= u
+
+
 class ProgressReward(Transform):
     """Adds ``c * (d_before - d_after)`` per step, ``d`` the distance to the goal (``info/goal_dist``).
 
@@ -75,8 +82,7 @@ class HumanDropout(Transform):
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         B = tensordict_reset.batch_size[0]
         mask = _reset_mask(tensordict, B)
-        u = torch.rand(B, 1, generator=self.gen) * self.p
-        drawn = torch.rand(B, self.n_humans, generator=self.gen) >= u
+        drawn = density_keep(B, self.n_humans, self.p, self.gen)
         agents = torch.ones(B, self.n_slots - self.n_humans, dtype=torch.bool)
         keep = torch.cat((agents, drawn), 1)
         self.keep = keep if self.keep is None else torch.where(mask.view(-1, 1), keep, self.keep)
