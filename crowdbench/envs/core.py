@@ -133,8 +133,10 @@ def outcome_of(success: torch.Tensor, collision: torch.Tensor, timeout: torch.Te
 def free_start(scene: Scene, t0: torch.Tensor, start: torch.Tensor, margin: float, radius_sum: float) -> torch.Tensor:
     """``[n]`` bool: no human present at grid index ``t0`` is within ``margin`` clearance of ``start`` ``[n, 2]``.
 
-    An episode that starts inside (or touching) a pedestrian is a collision no policy can avoid.
+    An episode that starts inside (or touching) a pedestrian is a collision no policy can avoid. A scene with
+    ``starts`` (several parts, :func:`~crowdbench.data.scenes.playback_scene`) also refuses the indices it does not admit.
     """
     pos, valid = scene.pos[t0].to(start.dtype), scene.valid[t0]
     gap = (pos - start.unsqueeze(-2)).norm(dim=-1) - radius_sum
-    return ((gap >= margin) | ~valid).all(-1)
+    free = ((gap >= margin) | ~valid).all(-1)
+    return free if scene.starts is None else free & scene.starts[t0]

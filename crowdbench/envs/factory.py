@@ -130,18 +130,33 @@ register_world("selfplay", _selfplay_config_class, lambda env_cfg, cfg, batch: s
 register_world("crowdnav", _crowdnav_config_class, lambda env_cfg, cfg, batch: crowdnav_world(cfg, batch))
 
 
-def make_env(cfg, progress_reward: float = 0.0, human_dropout: float = 0.0, extra=()):
+def training_world(env_cfg, batch: int, playback_speeds=(1.0,)):
+    """``(world, scenario)`` of :func:`make_world`, the replayed scene played at each of ``playback_speeds``
+    (``train.playback_speeds``, training only: :func:`~crowdbench.envs.scenarios.replay_scene_at`)."""
+    speeds = tuple(float(f) for f in playback_speeds)
+    if speeds == (1.0,):
+        return make_world(env_cfg, batch)
+    if env_name(env_cfg) != "replay":
+        raise ValueError(f"train.playback_speeds applies to env.name=replay only (env.name={env_name(env_cfg)})")
+    from crowdbench.envs.scenarios import replay_scene_at
+
+    sim = sim_config(env_cfg)
+    return replay_world(replay_scene_at(str(env_cfg.scene), sim, speeds), batch, sim, replay_humans(env_cfg))
+
+
+def make_env(cfg, progress_reward: float = 0.0, human_dropout: float = 0.0, extra=(), playback_speeds=(1.0,)):
     """The TorchRL env of ``cfg.env``, ``env.batch`` wide, seeded with ``cfg.seed``.
 
     ``progress_reward`` (``train.progress_reward``) and ``human_dropout`` (``train.human_dropout``)
     are training-only transforms (:mod:`crowdbench.envs.transforms`); ``extra`` transforms go after them.
+    ``playback_speeds`` (``train.playback_speeds``): :func:`training_world`.
     """
     from torchrl.envs import Compose, TransformedEnv
 
     from crowdbench.envs.torchrl_env import CrowdEnv
     from crowdbench.envs.transforms import HumanDropout, ProgressReward
 
-    world, scenario = make_world(cfg.env, int(cfg.env.batch))
+    world, scenario = training_world(cfg.env, int(cfg.env.batch), playback_speeds)
     env = CrowdEnv(world, scenario, seed=cfg.seed)
     transforms = []
     if human_dropout:

@@ -19,7 +19,7 @@ import numbers
 
 import torch
 
-from crowdbench.data.scenes import Scene, load_scene
+from crowdbench.data.scenes import Scene, load_scene, playback_scene
 from crowdbench.envs.core import START_CLEARANCE, SimConfig, free_start, int_option
 from crowdbench.envs.protocol import TrainSampler
 
@@ -32,6 +32,18 @@ def replay_scene(name: str, cfg: SimConfig) -> Scene:
     scene = load_scene(name, cfg.dt, cfg.time_base)  # ValueError on an unknown scene
     if scene.n_steps <= cfg.time_limit + 1:
         raise ValueError(f"scene {scene.name} is shorter than the time limit ({cfg.time_limit} steps)")
+    return scene
+
+
+def replay_scene_at(name: str, cfg: SimConfig, speeds) -> Scene:
+    """Scene ``name`` replayed at each playback speed of ``speeds`` (``train.playback_speeds``; training only):
+    :func:`~crowdbench.data.scenes.playback_scene`. ``(1.0,)`` is :func:`replay_scene` itself."""
+    speeds = tuple(float(f) for f in speeds)
+    if speeds == (1.0,):
+        return replay_scene(name, cfg)
+    scene = playback_scene(name, cfg.dt, speeds, cfg.time_limit, cfg.time_base)
+    if not bool(scene.starts.any()):
+        raise ValueError(f"scene {scene.name} at playback speeds {list(speeds)} leaves no part longer than the time limit")
     return scene
 
 
