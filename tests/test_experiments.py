@@ -27,6 +27,8 @@ def training_config(cfg: dict) -> dict:
     out["env"].pop("orca_backend", None)  # which ORCA solver computes the crowd (the same numbers), not what
     if out["algo"].get("thin") == 0.0:  # algo=value's default, absent from checkpoints made before the option
         out["algo"].pop("thin")
+    if out["train"].get("playback_speeds") in ([1.0], None):  # as recorded: absent from checkpoints made before the option
+        out["train"].pop("playback_speeds", None)
     if out["env"].get("sfm_backend") == "torch":  # the default, absent from checkpoints made before the option
         out["env"].pop("sfm_backend")  # (numba's social force is not torch's bit for bit: kept when set)
     return {**out, "seed": cfg["seed"]}
