@@ -14,7 +14,7 @@ from crowdbench.algos.train import train
 from crowdbench.cli import compose, main
 from crowdbench.schema_fields import bounded
 
-TINY = ["env.batch=8", "train.frames_per_batch=64", "train.checkpoint_every=64", "eval.episodes=2",
+TINY = ["train.pretrain=null", "env.batch=8", "train.frames_per_batch=64", "train.checkpoint_every=64", "eval.episodes=2",
         "eval.scenes=[hotel]", "train.probe_every=100000"]
 SMALL_MLP = ["encoder=mlp", "encoder.dim=16", "encoder.hidden=[32]"]
 OFF_POLICY = ["algo.warmup=64", "algo.batch_size=16", "train.utd=0.125"]

@@ -89,13 +89,23 @@ def test_encoder_names_mean_the_cpu_width():
     assert compose(["encoder=gatedgcn", "encoder.dim=256"]).encoder.dim == 256
 
 
-def test_the_card_command_is_the_best_shipped_recipe():
+def test_the_card_command_is_the_shipped_warm_start_recipe():
     """``crowdbench run algo=td3 encoder=gatedgcn`` trains exactly the config of the shipped
-    gatedgcn_td3_uniform_5x_s0 row (0.944; a seed reproduces its run bit for bit)."""
-    shipped = load_checkpoint(SUBMISSIONS / "gatedgcn_td3_uniform_5x_s0" / "checkpoint.pt")["config"]
+    gatedgcn_td3_warmstart_s0 row (a seed reproduces its run bit for bit): ORCA's demonstrations, behaviour
+    cloning, then 28,672 frames of TD3 with PER and the cloning term over the first 10,000 updates;
+    ``train=scratch algo.replay=uniform`` is RL from scratch, the gatedgcn_td3_uniform_5x_s0 row."""
     card = OmegaConf.to_container(compose(["algo=td3", "encoder=gatedgcn"]), resolve=True)
-    assert training_config(card) == training_config(shipped)
-    assert training_config(OmegaConf.to_container(compose([]), resolve=True)) == training_config(shipped)
+    t, a = card["train"], card["algo"]
+    assert (t["pretrain"], t["pretrain_frames"], t["pretrain_bc_weight"], t["pretrain_bc_updates"]) == ("orca", 20000, 1.0, 10000)
+    assert (t["total_frames"], a["replay"], card["encoder"]["name"], card["encoder"]["dim"]) == (28672, "prioritized", "gatedgcn", 32)
+    for seed in (0, 1, 2):
+        shipped = load_checkpoint(SUBMISSIONS / f"gatedgcn_td3_warmstart_s{seed}" / "checkpoint.pt")["config"]
+        assert training_config(OmegaConf.to_container(compose(["algo=td3", "encoder=gatedgcn", f"seed={seed}"]),
+                                                      resolve=True)) == training_config(shipped)
+    assert training_config(OmegaConf.to_container(compose([]), resolve=True)) == training_config(card)
+    scratch = load_checkpoint(SUBMISSIONS / "gatedgcn_td3_uniform_5x_s0" / "checkpoint.pt")["config"]
+    composed = compose(["algo=td3", "encoder=gatedgcn", "train=scratch", "algo.replay=uniform"])
+    assert training_config(OmegaConf.to_container(composed, resolve=True)) == training_config(scratch)
 
 
 @pytest.mark.parametrize("name", LEARNED)
@@ -116,3 +126,21 @@ def test_a_wrong_experiment_is_a_one_line_error(capsys):
 
 def test_plus_syntax_is_accepted():
     assert compose(["+experiment=leaderboard", "+method=gcn_td3"]).submission.name == "gcn_td3_s0"
+
+
+def test_the_default_recipe_says_what_to_expect_at_its_start(monkeypatch, capsys, tmp_path):
+    from crowdbench.algos import train as train_module
+    from crowdbench.cli_run import EXPECTATION, is_default_recipe
+
+    assert is_default_recipe([]) and is_default_recipe(["algo=td3", "encoder=gatedgcn", "seed=2", "cpus=2", "out=x"])
+    assert not is_default_recipe(["encoder=gcn"]) and not is_default_recipe(["train.total_frames=256"])
+    assert not is_default_recipe(["train=scratch"]) and not is_default_recipe(["train.max_minutes=3"])
+
+    def stop(*a, **kw):
+        raise ValueError("stopped before training")
+
+    monkeypatch.setattr(train_module, "train", stop)
+    for args, shown in ((["seed=1"], True), (["train.total_frames=256"], False)):
+        assert main(["run", *args, "eval.episodes=1", "eval.scenes=[hotel]", f"out={tmp_path / str(shown)}"]) == 2
+        out, err = capsys.readouterr()
+        assert (EXPECTATION in out) == shown and "stopped before training" in err

@@ -212,7 +212,7 @@ def test_attention_follows_permuted_humans(real_obs, name):
 
 
 # --------------------------------------------------------------------------- end to end
-RUN = ["train.total_frames=256", "train.frames_per_batch=128", "algo.warmup=128", "encoder.dim=8",
+RUN = ["train.pretrain=null", "train.total_frames=256", "train.frames_per_batch=128", "algo.warmup=128", "encoder.dim=8",
        "train.probe_every=1000000", "train.checkpoint_every=1000000", "train.utd=0.25", "env.batch=8",
        "algo.batch_size=16"]
 EVAL = ["eval.episodes=2", "eval.scenes=[hotel]"]

@@ -329,7 +329,7 @@ def test_lstm_rl_without_observed_humans_reads_the_initial_state():
 
 
 # --------------------------------------------------------------------------- end to end
-RUN = ["train.total_frames=256", "train.frames_per_batch=128", "algo.warmup=128", "encoder.dim=8",
+RUN = ["train.pretrain=null", "train.total_frames=256", "train.frames_per_batch=128", "algo.warmup=128", "encoder.dim=8",
        "train.probe_every=1000000", "train.checkpoint_every=1000000", "train.utd=0.25", "eval.episodes=2",
        "eval.scenes=[hotel]"]
 

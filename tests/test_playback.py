@@ -10,7 +10,7 @@ from crowdbench.cli import compose, main
 from crowdbench.data.scenes import FRAMES_PER_ROW, load_scene, playback_scene, read_rows, row_period
 from crowdbench.envs.factory import make_env, training_world
 
-TINY = ["train.total_frames=128", "train.frames_per_batch=64", "algo.warmup=64", "encoder.dim=8", "env.batch=4",
+TINY = ["train.pretrain=null", "train.total_frames=128", "train.frames_per_batch=64", "algo.warmup=64", "encoder.dim=8", "env.batch=4",
         "train.probe_every=1000000", "train.checkpoint_every=1000000", "train.utd=0.0625",
         "eval.episodes=1", "eval.scenes=[hotel]"]
 

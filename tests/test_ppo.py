@@ -16,7 +16,7 @@ from crowdbench.envs.factory import make_env
 from crowdbench.envs.policy import ACTION, GROUP
 from crowdbench.protocols.replay import evaluate
 
-SMALL = ["algo=ppo", "encoder=mlp", "encoder.dim=16", "encoder.hidden=[32]", "env.batch=4"]
+SMALL = ["train.pretrain=null", "algo=ppo", "encoder=mlp", "encoder.dim=16", "encoder.hidden=[32]", "env.batch=4"]
 
 
 def collected(cfg, frames: int = 128):

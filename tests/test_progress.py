@@ -16,7 +16,7 @@ from crowdbench.algos import train as train_mod
 from crowdbench.cli import main
 from crowdbench.leaderboard import run
 
-TINY = ["train.frames_per_batch=128", "algo.warmup=128", "encoder.dim=8", "train.utd=0.25",
+TINY = ["train.pretrain=null", "train.frames_per_batch=128", "algo.warmup=128", "encoder.dim=8", "train.utd=0.25",
         "train.probe_every=1000000", "train.checkpoint_every=1000000", "eval.episodes=2", "eval.scenes=[hotel]"]
 
 

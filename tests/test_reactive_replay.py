@@ -219,7 +219,7 @@ def test_training_with_other_reactive_values_evaluates_on_protocol_v2(tmp_path, 
     assert "env.reactive.horizon=2 conflicts with protocol v2 (1.0)" in capsys.readouterr().err
     out = tmp_path / "run"
     assert main(["run", "env.humans=reactive_replay", "env.reactive.horizon=2", "env.reactive.model=sfm",
-                 "encoder=mlp", "encoder.dim=8", "train.total_frames=256", "train.frames_per_batch=128",
+                 "encoder=mlp", "encoder.dim=8", "train.pretrain=null", "train.total_frames=256", "train.frames_per_batch=128",
                  "algo.warmup=128", "train.utd=0.25", "train.probe_every=128", "train.probe_episodes=2",
                  "eval.episodes=2", "eval.scenes=[hotel]", f"out={out}"]) == 0
     res = json.loads((out / "results.json").read_text())

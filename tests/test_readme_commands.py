@@ -23,10 +23,10 @@ from crowdbench.leaderboard.sandbox import bubblewrap
 ROOT = Path(__file__).resolve().parents[1]
 PLACEHOLDER = re.compile(r"\.\.\.|\b(RUN|SELFPLAY_RUN|OUT|DIR|SWEEP_DIR|NAME|LABEL|FILE|ADDR|N|S|K)\b")
 EVAL = ["eval.episodes=2", "eval.scenes=[hotel]"]
-RUN = ["train.total_frames=256", "train.frames_per_batch=128", "algo.warmup=128", "encoder.dim=8",
+RUN = ["train.pretrain=null", "train.total_frames=256", "train.frames_per_batch=128", "algo.warmup=128", "encoder.dim=8",
        "train.probe_every=1000000", "train.checkpoint_every=1000000", "train.utd=0.0625", *EVAL]
 SWEEP = [o for o in RUN if not o.startswith("eval.episodes")] + ["eval.episodes=1"]
-SELFPLAY = ["env.batch=4", "train.frames_per_batch=32", "algo.warmup=64", "algo.batch_size=16", "train.utd=0.125",
+SELFPLAY = ["train.pretrain=null", "env.batch=4", "train.frames_per_batch=32", "algo.warmup=64", "algo.batch_size=16", "train.utd=0.125",
             "train.total_frames=64", "train.checkpoint_every=64", "encoder.dim=8", "env.eval_episodes=2",
             "env.eval_scenarios=[circle]"]
 
@@ -44,7 +44,9 @@ INVOCATIONS: dict[str, list[list[str]]] = {
     "crowdbench eval ... eval.save_episodes=true":
         [["eval", "policy=straight", "eval.save_episodes=true", *EVAL, "out={out}"]],
     "crowdbench eval ... out=DIR": [["eval", "policy=straight", *EVAL, "out={tmp}/eval_dir"]],
-    "crowdbench run algo=td3 encoder=gatedgcn": [["run", "algo=td3", "encoder=gatedgcn", *RUN, "out={run}"]],
+    # the default recipe with its warm start, on 256 demonstrated steps
+    "crowdbench run algo=td3 encoder=gatedgcn": [["run", "algo=td3", "encoder=gatedgcn", *RUN[1:], "train.pretrain_frames=256",
+                                                  "train.pretrain_epochs=1", "out={run}"]],
     "crowdbench eval policy=RUN/checkpoint.pt": [["eval", "policy={run}/checkpoint.pt", *EVAL]],
     "crowdbench run algo=ddpg\\|sac\\|ppo encoder=gcn\\|mlp": [
         ["run", "algo=ddpg", "encoder=gcn", *RUN], ["run", "algo=sac", "encoder=mlp", *RUN],
@@ -61,6 +63,7 @@ INVOCATIONS: dict[str, list[list[str]]] = {
     "crowdbench run ... algo.exploration=ou": [["run", *RUN, "algo.exploration=ou"]],
     "crowdbench run ... algo.critic_lookahead=0": [["run", *RUN, "algo.critic_lookahead=0"]],
     "crowdbench run ... train.human_dropout=0.8": [["run", *RUN, "train.human_dropout=0.8"]],
+    "crowdbench run train=scratch algo.replay=uniform": [["run", *RUN, "train=scratch", "algo.replay=uniform"]],
     "crowdbench run ... train.playback_speeds=[1.0,2.0]": [["run", *RUN, "train.playback_speeds=[1.0,2.0]"]],
     "crowdbench run ... encoder=rgl encoder.similarity=embedded_gaussian":
         [["run", *RUN, "encoder=rgl", "encoder.similarity=embedded_gaussian", "encoder.compact=false"]],

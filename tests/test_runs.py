@@ -20,7 +20,7 @@ from crowdbench.algos.train import train
 from crowdbench.cli import compose, main
 from crowdbench.outputs import LOCK_NAME
 
-TINY = ["env.batch=8", "train.frames_per_batch=64", "algo.warmup=128", "algo.batch_size=16", "train.utd=0.125",
+TINY = ["train.pretrain=null", "env.batch=8", "train.frames_per_batch=64", "algo.warmup=128", "algo.batch_size=16", "train.utd=0.125",
         "train.checkpoint_every=128", "algo=td3", "encoder=mlp", "encoder.dim=16", "encoder.hidden=[32]",
         "algo.buffer_size=4096"]
 EVAL = ["eval.episodes=2", "eval.scenes=[hotel]"]
@@ -203,7 +203,7 @@ def test_the_saved_buffer_samples_as_the_original(replay, tmp_path):
 
 
 def test_resume_into_another_replay_kind_keeps_the_transitions(tmp_path):
-    train(compose([*TINY, "train.total_frames=256"]), tmp_path, progress=False)
+    train(compose([*TINY, "train.total_frames=256", "algo.replay=uniform"]), tmp_path, progress=False)
     train(compose([*TINY, "train.total_frames=384", "algo.replay=prioritized"]), tmp_path, resume=True,
           progress=False)
     state = load_checkpoint(tmp_path / "checkpoint.pt")

@@ -25,7 +25,7 @@ from crowdbench.envs.selfplay import SelfPlayConfig, _square, episode_set, sampl
 from crowdbench.protocols.selfplay import evaluate_selfplay
 
 ALL = torch.ones(1, dtype=torch.bool)
-TINY = ["env.batch=4", "train.frames_per_batch=32", "algo.warmup=64", "algo.batch_size=16", "train.utd=0.125",
+TINY = ["train.pretrain=null", "env.batch=4", "train.frames_per_batch=32", "algo.warmup=64", "algo.batch_size=16", "train.utd=0.125",
         "train.checkpoint_every=64", "encoder.dim=16", "env.eval_episodes=3"]
 
 

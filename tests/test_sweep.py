@@ -15,7 +15,7 @@ import yaml
 
 from crowdbench.sweep import format_summary, summarise
 
-TINY = ["train.total_frames=256", "train.frames_per_batch=128", "algo.warmup=128", "encoder.dim=8",
+TINY = ["train.pretrain=null", "train.total_frames=256", "train.frames_per_batch=128", "algo.warmup=128", "encoder.dim=8",
         "train.probe_every=1000000", "train.checkpoint_every=1000000", "eval.episodes=2", "eval.scenes=[hotel]"]
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "RL_WARNINGS": "False", "RAY_AUTH_MODE": "disabled"}
 

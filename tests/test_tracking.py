@@ -11,7 +11,7 @@ import pytest
 from crowdbench.algos.train import train
 from crowdbench.cli import compose, main
 
-TINY = ["algo=td3", "encoder=mlp", "encoder.dim=8", "encoder.hidden=[16]", "env.batch=8",
+TINY = ["train.pretrain=null", "algo=td3", "encoder=mlp", "encoder.dim=8", "encoder.hidden=[16]", "env.batch=8",
         "train.frames_per_batch=64", "algo.warmup=64", "algo.batch_size=16", "train.utd=0.125",
         "train.checkpoint_every=128", "train.probe_every=1000000"]
 

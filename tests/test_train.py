@@ -15,7 +15,7 @@ from crowdbench.algos.train import train
 from crowdbench.cli import compose, main
 from crowdbench.protocols.replay import evaluate
 
-TINY = ["env.batch=8", "train.frames_per_batch=64", "algo.warmup=128", "algo.batch_size=16", "train.utd=0.125",
+TINY = ["train.pretrain=null", "env.batch=8", "train.frames_per_batch=64", "algo.warmup=128", "algo.batch_size=16", "train.utd=0.125",
         "train.checkpoint_every=128"]
 SMALL_ENCODER = {"gatedgcn": ["encoder.dim=16"], "gcn": ["encoder.dim=16"], "mlp": ["encoder.dim=16",
                                                                                     "encoder.hidden=[32]"]}

@@ -8,7 +8,7 @@ from pathlib import Path
 from crowdbench.cli import compose, main
 
 ROOT = Path(__file__).resolve().parents[1]
-TINY = ["train.total_frames=128", "train.frames_per_batch=64", "algo.warmup=64", "encoder.dim=8",
+TINY = ["train.pretrain=null", "train.total_frames=128", "train.frames_per_batch=64", "algo.warmup=64", "encoder.dim=8",
         "train.probe_every=1000000", "train.checkpoint_every=1000000", "eval.episodes=1", "eval.scenes=[hotel]"]
 
 

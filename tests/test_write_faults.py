@@ -128,7 +128,7 @@ def test_a_run_that_cannot_write_does_not_claim_a_kept_checkpoint(tmp_path, caps
         raise OSError(28, "No space left on device", str(tmp_path / "r" / "logs"))
 
     monkeypatch.setattr(CSVLogger, "log_scalar", full)
-    tiny = ["train.total_frames=256", "train.frames_per_batch=128", "algo.warmup=128", "encoder.dim=8",
+    tiny = ["train.pretrain=null", "train.total_frames=256", "train.frames_per_batch=128", "algo.warmup=128", "encoder.dim=8",
             "train.probe_every=1000000", "train.checkpoint_every=1000000", "eval.episodes=2", "eval.scenes=[hotel]"]
     assert main(["run", *tiny, f"out={tmp_path / 'r'}"]) == 2
     err = capsys.readouterr().err

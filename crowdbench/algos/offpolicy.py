@@ -176,9 +176,9 @@ class OffPolicyAlgorithm(Algorithm):
         self.opt_critic = torch.optim.Adam(params_of(self.critic_params()), lr=a.lr_critic, fused=True)
         self.rb = make_buffer(a, self.generator)
         self.cloning = None
-        if cfg.train.get("pretrain_bc_weight", 0) > 0:
-            if not cfg.train.get("pretrain"):
-                raise ValueError("train.pretrain_bc_weight > 0 clones demonstrations: it needs train.pretrain=orca")
+        # the cloning term draws from the warm start's demonstrations: without one (train.pretrain=null) it has
+        # nothing to clone and is off, whatever its weight (the default recipe sets both)
+        if cfg.train.get("pretrain") and cfg.train.get("pretrain_bc_weight", 0) > 0:
             self.cloning = DemoCloning(cfg)
 
     # ---- what a subclass provides
