@@ -82,7 +82,7 @@ def test_a_run_trains_with_playback_speeds_and_records_them(tmp_path):
 @pytest.mark.parametrize(("overrides", "message"), [
     (["train.playback_speeds=[0]"], "train.playback_speeds"),
     (["train.playback_speeds=[1.0,5.0]"], "train.playback_speeds"),
-    (["env=crowdnav", "train.playback_speeds=[1.0,2.0]"], "train.playback_speeds applies to env.name=replay"),
+    (["env=crowdnav", "train.playback_speeds=[1.0,2.0]"], "train.playback_speeds: env.name=crowdnav replays no recording"),
 ])
 def test_bad_playback_speeds_are_one_line_errors(tmp_path, capsys, overrides, message):
     assert main(["run", *TINY, *overrides, f"out={tmp_path / 'x'}"]) == 2

@@ -26,14 +26,17 @@ class WorldKind:
 
     config: Callable[[], type]
     build: Callable
+    # ``playback(env_cfg, cfg, batch, speeds)``: the world with its recorded training scene replayed at each of
+    # ``speeds`` (``train.playback_speeds``); None for a world that replays no recording
+    playback: Callable | None = None
 
 
 WORLDS: dict[str, WorldKind] = {}
 
 
-def register_world(name: str, config: Callable[[], type], build: Callable) -> None:
+def register_world(name: str, config: Callable[[], type], build: Callable, playback: Callable | None = None) -> None:
     """Make ``env.name=NAME`` build worlds with ``build``, typed by the class ``config()`` returns."""
-    WORLDS[name] = WorldKind(config, build)
+    WORLDS[name] = WorldKind(config, build, playback)
 
 
 def env_name(env_cfg) -> str:
@@ -124,8 +127,15 @@ def _crowdnav_config_class():
     return CrowdNavConfig
 
 
+def replay_playback(env_cfg, cfg, batch: int, speeds):
+    from crowdbench.envs.scenarios import replay_scene_at
+
+    return replay_world(replay_scene_at(str(env_cfg.scene), cfg, speeds), batch, cfg, replay_humans(env_cfg))
+
+
 register_world("replay", lambda: SimConfig,
-               lambda env_cfg, cfg, batch: replay_world(str(env_cfg.scene), batch, cfg, replay_humans(env_cfg)))
+               lambda env_cfg, cfg, batch: replay_world(str(env_cfg.scene), batch, cfg, replay_humans(env_cfg)),
+               replay_playback)
 register_world("selfplay", _selfplay_config_class, lambda env_cfg, cfg, batch: selfplay_world(cfg, batch))
 register_world("crowdnav", _crowdnav_config_class, lambda env_cfg, cfg, batch: crowdnav_world(cfg, batch))
 
@@ -136,12 +146,10 @@ def training_world(env_cfg, batch: int, playback_speeds=(1.0,)):
     speeds = tuple(float(f) for f in playback_speeds)
     if speeds == (1.0,):
         return make_world(env_cfg, batch)
-    if env_name(env_cfg) != "replay":
-        raise ValueError(f"train.playback_speeds applies to env.name=replay only (env.name={env_name(env_cfg)})")
-    from crowdbench.envs.scenarios import replay_scene_at
-
-    sim = sim_config(env_cfg)
-    return replay_world(replay_scene_at(str(env_cfg.scene), sim, speeds), batch, sim, replay_humans(env_cfg))
+    name = env_name(env_cfg)
+    if WORLDS[name].playback is None:
+        raise ValueError(f"train.playback_speeds: env.name={name} replays no recording (env.name=replay does)")
+    return WORLDS[name].playback(env_cfg, sim_config(env_cfg), batch, speeds)
 
 
 def make_env(cfg, progress_reward: float = 0.0, human_dropout: float = 0.0, extra=(), playback_speeds=(1.0,)):
