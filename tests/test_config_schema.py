@@ -51,8 +51,7 @@ PARTS = [f"{kind}:{o}" for kind, group in (("exp", "experiment"), ("env", "env")
 
 
 RADIUS_ENCODERS = ('gat', 'gatedgcn', 'gcn')  # the encoders with an edge radius (encoder.radius2)
-OFF_POLICY_EXPERIMENTS = ("paper", "leaderboard", "leaderboard_long", "baselines", "crowdnav", "crowdnav_distill", "reactive",
-                          "warmstart", "selfplay_warmstart")  # they set algo.replay
+OFF_POLICY_EXPERIMENTS = ("paper", "leaderboard", "baselines", "crowdnav", "crowdnav_distill", "reactive", "warmstart")  # they set algo.replay
 
 
 def _algo_of(method: str) -> str:

@@ -92,19 +92,19 @@ def test_encoder_names_mean_the_cpu_width():
 def test_the_card_command_is_the_shipped_warm_start_recipe():
     """``crowdbench run algo=td3 encoder=gatedgcn`` trains exactly the config of the shipped
     gatedgcn_td3_warmstart_s0 row (a seed reproduces its run bit for bit): ORCA's demonstrations, behaviour
-    cloning, then 28,672 frames of TD3 with PER and the cloning term over the first 10,000 updates;
+    cloning, then 28,672 frames of TD3 (uniform replay) with the cloning term over the first 10,000 updates;
     ``train=scratch algo.replay=uniform`` is RL from scratch, the gatedgcn_td3_uniform_5x_s0 row."""
     card = OmegaConf.to_container(compose(["algo=td3", "encoder=gatedgcn"]), resolve=True)
     t, a = card["train"], card["algo"]
     assert (t["pretrain"], t["pretrain_frames"], t["pretrain_bc_weight"], t["pretrain_bc_updates"]) == ("orca", 20000, 1.0, 10000)
-    assert (t["total_frames"], a["replay"], card["encoder"]["name"], card["encoder"]["dim"]) == (28672, "prioritized", "gatedgcn", 32)
+    assert (t["total_frames"], a["replay"], card["encoder"]["name"], card["encoder"]["dim"]) == (28672, "uniform", "gatedgcn", 32)
     for seed in (0, 1, 2):
         shipped = load_checkpoint(SUBMISSIONS / f"gatedgcn_td3_warmstart_s{seed}" / "checkpoint.pt")["config"]
         assert training_config(OmegaConf.to_container(compose(["algo=td3", "encoder=gatedgcn", f"seed={seed}"]),
                                                       resolve=True)) == training_config(shipped)
     assert training_config(OmegaConf.to_container(compose([]), resolve=True)) == training_config(card)
     scratch = load_checkpoint(SUBMISSIONS / "gatedgcn_td3_uniform_5x_s0" / "checkpoint.pt")["config"]
-    composed = compose(["algo=td3", "encoder=gatedgcn", "train=scratch", "algo.replay=uniform"])
+    composed = compose(["algo=td3", "encoder=gatedgcn", "train=scratch"])
     assert training_config(OmegaConf.to_container(composed, resolve=True)) == training_config(scratch)
 
 

@@ -27,7 +27,6 @@ class MATD3Config(TD3Config):
     """``algo=matd3``."""
 
     name: str = bounded("matd3", choices=("matd3",))
-    replay: str = bounded("uniform", choices=("uniform", "prioritized"))
     critic_dim: int = bounded(64, ge=1)  # the scene critic's per-body width
     critic_hidden: list[int] = field(default_factory=lambda: [128, 128], metadata={"ge": 1, "min_len": 1})
 

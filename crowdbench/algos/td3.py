@@ -16,8 +16,6 @@ class TD3Config(NoisyActorConfig):
     """``algo=td3``."""
 
     name: str = bounded("td3", choices=("td3",))
-    # the default recipe's replay (with the ORCA warm start: docs/training.md); DDPG, SAC and MATD3 keep uniform
-    replay: str = bounded("prioritized", choices=("uniform", "prioritized"))
     policy_delay: int = bounded(2, ge=1)  # actor + targets every 2 critic updates (TD3's default)
     policy_noise: float = bounded(0.2, ge=0)  # target policy smoothing
     noise_clip: float = bounded(0.5, ge=0)
