@@ -35,12 +35,9 @@ def replay_scene(name: str, cfg: SimConfig) -> Scene:
     return scene
 
 
-def replay_scene_at(name: str, cfg: SimConfig, speeds) -> Scene:
+def replay_scene_at(name: str, cfg: SimConfig, speeds: tuple[float, ...]) -> Scene:
     """Scene ``name`` replayed at each playback speed of ``speeds`` (``train.playback_speeds``; training only):
-    :func:`~crowdbench.data.scenes.playback_scene`. ``(1.0,)`` is :func:`replay_scene` itself."""
-    speeds = tuple(float(f) for f in speeds)
-    if speeds == (1.0,):
-        return replay_scene(name, cfg)
+    :func:`~crowdbench.data.scenes.playback_scene`."""
     scene = playback_scene(name, cfg.dt, speeds, cfg.time_limit, cfg.time_base)
     if not bool(scene.starts.any()):
         raise ValueError(f"scene {scene.name} at playback speeds {list(speeds)} leaves no part longer than the time limit")
