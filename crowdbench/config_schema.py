@@ -162,6 +162,7 @@ class GCNConfig:
     k: int = bounded(8, ge=1)  # neighbour cap per node
     radius2: float = bounded(5.0, gt=0)  # squared edge radius
     receptive_field: bool = True
+    robot_radius2: float | None = bounded(None, gt=0)  # the robot's incoming edges (null: radius2)
 
 
 @dataclass

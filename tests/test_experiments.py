@@ -31,6 +31,8 @@ def training_config(cfg: dict) -> dict:
         out["train"].pop("playback_speeds", None)
     if out["env"].get("sfm_backend") == "torch":  # the default, absent from checkpoints made before the option
         out["env"].pop("sfm_backend")  # (numba's social force is not torch's bit for bit: kept when set)
+    if out["encoder"].get("robot_radius2", 0) is None:  # the default, absent from checkpoints made before the option
+        out["encoder"].pop("robot_radius2")
     return {**out, "seed": cfg["seed"]}
 
 

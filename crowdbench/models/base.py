@@ -105,6 +105,7 @@ class GraphEncoder(SplitEncoder):
         k: int = DEFAULT_K,
         radius2: float = RADIUS2,
         receptive_field: bool = True,
+        robot_radius2: float | None = None,
         **layer_kwargs,
     ):
         super().__init__()
@@ -112,6 +113,7 @@ class GraphEncoder(SplitEncoder):
         self.n_layers = layers
         self.k = k
         self.radius2 = radius2
+        self.robot_radius2 = robot_radius2
         self.receptive_field = receptive_field
         self.robot_emb = nn.Linear(6, dim)
         self.human_emb = nn.Linear(4, dim)
@@ -124,7 +126,8 @@ class GraphEncoder(SplitEncoder):
     def build_graph(self, robot, humans=None, humans_mask=None) -> Graph:
         robot, humans, humans_mask = unpack_obs(robot, humans, humans_mask)
         return build_graph(
-            robot, humans, humans_mask, self.k, self.radius2, self.n_layers, self.receptive_field
+            robot, humans, humans_mask, self.k, self.radius2, self.n_layers, self.receptive_field,
+            self.robot_radius2,
         )
 
     def forward(self, robot, humans=None, humans_mask=None):
@@ -136,6 +139,8 @@ class GraphEncoder(SplitEncoder):
     def prep_key(self) -> str:
         layout = "rf" if self.receptive_field else "full"
         r2 = f"{self.radius2:g}".replace(".", "p")
+        if self.robot_radius2 is not None:
+            r2 += "_rr" + f"{self.robot_radius2:g}".replace(".", "p")
         return f"graph_k{self.k}_l{self.n_layers}_{layout}_r{r2}"
 
     def prepare(self, robot, humans=None, humans_mask=None) -> dict[str, torch.Tensor]:

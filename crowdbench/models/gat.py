@@ -200,9 +200,10 @@ class GATEncoder(GraphEncoder):
         negative_slope: float = 0.2,
         edge_features: bool = True,
         score_cap: float | None = None,
+        robot_radius2: float | None = None,
     ):
         kw = {"negative_slope": negative_slope, "edge_features": edge_features, "score_cap": score_cap}
-        super().__init__(dim, 0, k, radius2, receptive_field, heads=heads, concat=True, **kw)
+        super().__init__(dim, 0, k, radius2, receptive_field, robot_radius2, heads=heads, concat=True, **kw)
         self.n_layers = layers
         hidden = [GATLayer(dim, heads, concat=True, **kw) for _ in range(layers - 1)]
         self.layers = nn.ModuleList([*hidden, GATLayer(dim, out_heads, concat=False, **kw)])  # output: average

@@ -140,5 +140,6 @@ class GatedGCNEncoder(GraphEncoder):
         radius2: float = RADIUS2,
         receptive_field: bool = True,
         eps: float = 1e-6,
+        robot_radius2: float | None = None,
     ):
-        super().__init__(dim, layers, k, radius2, receptive_field, eps=eps)
+        super().__init__(dim, layers, k, radius2, receptive_field, robot_radius2, eps=eps)

@@ -220,9 +220,10 @@ def sender_coords(pos: torch.Tensor, valid: torch.Tensor):
     return torch.where(send, pos[..., 0], far), torch.where(send, pos[..., 1], 0.0)
 
 
-def _nearest(x, y, targets, k: int, radius2: float):
+def _nearest(x, y, targets, k: int, radius2):
     """Up to ``k`` nearest candidates within the radius for each target ``[B, T]``:
-    ``val, idx [B, T, k]`` (``val = inf`` on padding, padding last; ids on padding arbitrary)."""
+    ``val, idx [B, T, k]`` (``val = inf`` on padding, padding last; ids on padding arbitrary).
+    ``radius2``: one squared radius, or one per target row (a ``[T, 1]`` tensor)."""
     n = x.shape[1]
     tx, ty = torch.gather(x, 1, targets), torch.gather(y, 1, targets)
     dx = x.unsqueeze(1) - tx.unsqueeze(2)
@@ -265,11 +266,14 @@ def build_graph(
     radius2: float = RADIUS2,
     layers: int = 2,
     receptive_field: bool = True,
+    robot_radius2: float | None = None,
 ) -> Graph:
     """Build the graph of ``[*, 6], [*, M, 4], [*, M]`` observations for ``layers`` layers.
 
     ``receptive_field=True`` uses the robot's receptive-field layout when ``layers <= 2``
     (module docstring); otherwise every node but the goal is a receiving row.
+    ``robot_radius2`` (default ``radius2``): the squared radius of the robot's own incoming
+    edges; the edges between humans, and from the robot to a human, keep ``radius2``.
 
     The topology (who is whose neighbour) is not differentiable; the node and edge features
     are, with respect to the observation, when it requires grad (the lookahead critic's
@@ -280,7 +284,9 @@ def build_graph(
     n = m + 2
     pos, valid = node_positions(robot, humans, humans_mask)
     with torch.no_grad():
-        targets, idx, val, sizes, full = _topology(pos, valid, b, n, k, radius2, layers, receptive_field)
+        targets, idx, val, sizes, full = _topology(
+            pos, valid, b, n, k, radius2, layers, receptive_field, robot_radius2
+        )
     mask = val < _INF
     z = typed_inputs(robot, humans, humans_mask)
     z_t = z[:, :-1] if full else _gather_rows(z, targets)
@@ -292,12 +298,13 @@ def build_graph(
     return Graph(idx, mask, z_t, edge_in, goal_in, valid, targets, sizes, full, lead)
 
 
-def _topology(pos, valid, b: int, n: int, k: int, radius2: float, layers: int, receptive_field: bool):
+def _topology(pos, valid, b, n, k, radius2, layers, receptive_field, robot_radius2=None):
     """Receiving rows ``targets``, their neighbour ids ``idx`` and distances ``val`` (inf on padding)."""
     x, y = sender_coords(pos, valid)
+    robot_r2 = radius2 if robot_radius2 is None else robot_radius2
     if uses_receptive_layout(layers, k, n, receptive_field):
         targets = torch.zeros(b, 1, dtype=torch.long, device=pos.device)
-        val, idx = _nearest(x, y, targets, k, radius2)
+        val, idx = _nearest(x, y, targets, k, robot_r2)
         if layers == 2:  # T_1 = [robot, its K neighbour slots]
             v2, i2 = _nearest(x, y, idx[:, 0], k, radius2)
             targets = torch.cat((targets, idx[:, 0]), 1)
@@ -305,7 +312,11 @@ def _topology(pos, valid, b: int, n: int, k: int, radius2: float, layers: int, r
         sizes, full = receptive_sizes(layers, k), False
     else:
         targets = torch.arange(n - 1, device=pos.device).unsqueeze(0).expand(b, -1)
-        val, idx = _nearest(x, y, targets, k, radius2)
+        r2 = radius2
+        if robot_r2 != radius2:  # row 0 (the robot) has its own radius
+            r2 = torch.full((n - 1, 1), radius2, dtype=pos.dtype, device=pos.device)
+            r2[0] = robot_r2
+        val, idx = _nearest(x, y, targets, k, r2)
         idx = idx.masked_fill(val == _INF, 0)  # padding -> node 0, a valid row for later gathers
         sizes, full = (n - 1,) * layers, True
     return targets, idx, val, sizes, full
