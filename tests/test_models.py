@@ -116,6 +116,33 @@ def test_receptive_layout_rows_are_robot_and_its_neighbours():
     assert g.nbr_mask[0, 0].tolist() == [True, True, False]
 
 
+@pytest.mark.parametrize("rf", [False, True])
+def test_robot_radius_widens_only_the_robots_incoming_edges(rf):
+    # robot_radius2 = 9 (3 m): H2 (d2 = 5.01) now sends to the robot; H3 (d2 = 13) still does not;
+    # H2 still receives nothing from the robot, and the edges between humans are the sqrt(5) m ones
+    g = build_graph(*hand_obs(), k=3, layers=2, receptive_field=rf, robot_radius2=9.0)
+    assert g.full != rf
+    got = rows_as_sets(g)
+    assert got[0] == {**EXPECTED[0], 2: (2.0, round(-Y2, 4))}
+    assert all(got[node] == EXPECTED[node] for node in got if node != 0)
+    assert set(got) == ({0, 1, 2, 5} if rf else set(EXPECTED))
+
+
+@pytest.mark.parametrize("name", ["gatedgcn", "gcn", "gat"])
+def test_receptive_field_equals_full_computation_with_a_robot_radius(real_obs, name):
+    torch.manual_seed(0)
+    full = make_encoder(name, dim=16, receptive_field=False, robot_radius2=25.0)
+    rf = make_encoder(name, dim=16, receptive_field=True, robot_radius2=25.0)
+    rf.load_state_dict(full.state_dict())
+    paper = make_encoder(name, dim=16, receptive_field=True)
+    paper.load_state_dict(full.state_dict())
+    with torch.no_grad():
+        a, b, c = full(*obs_args(real_obs))[1], rf(*obs_args(real_obs))[1], paper(*obs_args(real_obs))[1]
+    torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-5)
+    assert not torch.allclose(b, c, atol=1e-3)  # the farther humans reach the robot
+    assert full.prep_key != paper.prep_key  # prepared graphs of the two radii are never mixed
+
+
 def test_goal_edge_attribute_is_goal_minus_position(real_obs):
     g = build_graph(*obs_args(real_obs))
     robot = real_obs["robot"].reshape(-1, 6)
