@@ -49,12 +49,12 @@ def cpu_per_call(world, model: str, reps: int) -> dict[str, float]:
     best = {"numba": float("inf"), "torch": float("inf")}
     for backend in best:  # compile / load the cache, warm up
         _use(world, model, backend)
-        world.crowd.velocities(world)
+        world.crowd.velocities(world.agents())
     for _ in range(reps):
         for backend in ("numba", "torch"):
             _use(world, model, backend)
             t = time.process_time()
-            world.crowd.velocities(world)
+            world.crowd.velocities(world.agents())
             best[backend] = min(best[backend], time.process_time() - t)
     return best
 
