@@ -45,8 +45,11 @@ def test_wandb_offline_run_writes_its_files(tmp_path, monkeypatch, capsys):
 
     train(compose([*TINY, "train.total_frames=256", "train.logger=wandb"]), run, resume=True, progress=False)
     assert (run / "wandb" / "crowdbench-run-id").read_text().strip() == run_id  # the same W&B run continues
-    assert len(list((run / "wandb").glob(f"offline-run-*-{run_id}"))) >= 1
-    assert not [d for d in (run / "wandb").glob("offline-run-*") if not d.name.endswith(run_id)]
+    # W&B names a run's directory offline-run-<second>-<id>, and adds -1, -2, ... when a resumed run starts
+    # within the same second as the one before it
+    ours = re.compile(rf"offline-run-\d{{8}}_\d{{6}}-{run_id}(-\d+)?")
+    assert len(list((run / "wandb").glob(f"offline-run-*-{run_id}*"))) >= 2
+    assert [d.name for d in (run / "wandb").glob("offline-run-*") if not ours.fullmatch(d.name)] == []
     assert int(float((run / "logs" / "scalars" / "updates.csv").read_text().splitlines()[-1].split(",")[0])) == 256
 
 
