@@ -59,7 +59,7 @@ def test_weighted_loss_is_the_weighted_mean(algo):
 
 def test_per_weights_train_and_need_per(tmp_path):
     for algo in ("td3", "sac"):
-        cfg = compose([f"algo={algo}", *SMALL, "algo.replay=prioritized", "algo.per_weights=true", "train.frames_per_batch=64",
+        cfg = compose([f"algo={algo}", *SMALL, "train.pretrain=null", "algo.replay=prioritized", "algo.per_weights=true", "train.frames_per_batch=64",
                        "algo.warmup=128", "train.utd=0.125", "train.total_frames=256"])
         stats = train(cfg, tmp_path / algo, progress=False)
         assert stats["updates"] > 0

@@ -88,7 +88,7 @@ def test_clipped_objective_and_value_loss_by_hand():
 @pytest.mark.parametrize("encoder", ["gatedgcn", "gcn", "mlp", "sarl", "lstm_rl", "rgl", "gat", "dsrnn"])
 def test_every_encoder_trains_and_checkpoints(encoder, tmp_path):
     small = ["encoder.dim=16"] + (["encoder.hidden=[32]"] if encoder == "mlp" else [])
-    cfg = compose(["algo=ppo", f"encoder={encoder}", *small, "env.batch=8", "train.frames_per_batch=128",
+    cfg = compose(["train.pretrain=null", "algo=ppo", f"encoder={encoder}", *small, "env.batch=8", "train.frames_per_batch=128",
                    "algo.minibatch_size=64", "algo.epochs=2", "train.total_frames=256", "train.checkpoint_every=128"])
     stats = train(cfg, tmp_path, progress=False)
     assert stats["frames"] == 256 and stats["updates"] == 2 * 2 * 2
@@ -100,7 +100,7 @@ def test_every_encoder_trains_and_checkpoints(encoder, tmp_path):
 
 def test_self_play_trains_every_agent_on_the_shared_policy(tmp_path):
     """Each agent's own transitions enter the update: the minibatch count follows agents x steps."""
-    cfg = compose(["algo=ppo", "env=selfplay", "env.n_agents=4", "encoder=gatedgcn", "encoder.dim=16",
+    cfg = compose(["train.pretrain=null", "algo=ppo", "env=selfplay", "env.n_agents=4", "encoder=gatedgcn", "encoder.dim=16",
                    "env.batch=8", "train.frames_per_batch=64", "algo.minibatch_size=64", "algo.epochs=1",
                    "train.total_frames=128"])
     stats = train(cfg, tmp_path, progress=False)
