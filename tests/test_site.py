@@ -45,6 +45,7 @@ def results(root: Path) -> dict[str, dict]:
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("site_board")  # one worker builds the module fixture once
 def test_site_files_escaping_and_cache(board, tmp_path):
     root, site, log = board
     index = (site / "index.html").read_text()
@@ -93,6 +94,7 @@ def test_training_command():
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("site_board")  # one worker builds the module fixture once
 def test_site_in_a_browser(board, tmp_path):
     require_system("chromium")
     require_system("chromedriver")

@@ -39,6 +39,7 @@ def basic_sweep(tmp_path_factory) -> Path:
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("basic_sweep")  # one worker builds the module fixture once
 def test_basic_launcher_writes_every_run_and_the_summary(basic_sweep):
     runs = [basic_sweep / "0", basic_sweep / "1"]
     for d in runs:
@@ -54,6 +55,7 @@ def test_basic_launcher_writes_every_run_and_the_summary(basic_sweep):
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("basic_sweep")  # one worker builds the module fixture once
 def test_ray_launcher_gives_the_same_runs_as_the_basic_one(basic_sweep, tmp_path):
     p = crowdbench("run", "-m", "hydra/launcher=ray", "hydra.launcher.ray.init.num_cpus=2", "seed=0,1", *TINY,
                    "out=ray_sweep", cwd=tmp_path)
@@ -88,6 +90,7 @@ def test_a_bad_key_fails_the_sweep_before_any_run(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("basic_sweep")  # one worker builds the module fixture once
 def test_submit_turns_each_finished_run_into_a_submission(basic_sweep, tmp_path):
     p = crowdbench("submit", str(basic_sweep), "--root", str(tmp_path), "--entry", "tiny TD3", cwd=tmp_path)
     assert p.returncode == 0, p.stderr
@@ -107,6 +110,7 @@ def test_submit_turns_each_finished_run_into_a_submission(basic_sweep, tmp_path)
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("basic_sweep")  # one worker builds the module fixture once
 def test_submit_of_a_plain_sweep_then_the_leaderboard(basic_sweep, tmp_path):
     """No --entry: names and labels from the sweep, never those of shipped submissions."""
     shipped = tmp_path / "submissions" / "gatedgcn_td3_s0"
