@@ -47,14 +47,15 @@ def cpu_per_call(world, model: str, reps: int) -> dict[str, float]:
     """Minimum CPU time of one call per backend, the backends alternating call by call (so that a change
     of the machine's load hits both alike)."""
     best = {"numba": float("inf"), "torch": float("inf")}
+    agents = world.agents()  # the crowd's whole view of the world, outside the timed calls
     for backend in best:  # compile / load the cache, warm up
         _use(world, model, backend)
-        world.crowd.velocities(world.agents())
+        world.crowd.velocities(agents)
     for _ in range(reps):
         for backend in ("numba", "torch"):
             _use(world, model, backend)
             t = time.process_time()
-            world.crowd.velocities(world.agents())
+            world.crowd.velocities(agents)
             best[backend] = min(best[backend], time.process_time() - t)
     return best
 
