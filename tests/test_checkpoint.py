@@ -27,7 +27,8 @@ def test_a_shipped_format_1_checkpoint_loads_with_the_upgraded_config():
     raw = torch.load(SHIPPED, map_location="cpu", weights_only=True)
     assert raw["format"] == LEGACY_TAG and "per_weights" not in raw["config"]["algo"]  # really format 1
     state = load_checkpoint(SHIPPED)
-    assert state["format"] == FORMAT == 8
+    assert state["format"] == FORMAT == 9
+    assert state["config"]["algo"]["actor_base"] == "none"  # format 9: a plain actor
     assert state["config"]["train"]["pretrain_dagger_rounds"] == 0  # format 8: no DAgger
     assert state["config"]["env"]["humans"] == "replay"  # format 3: trained among the humans as recorded
     algo = state["config"]["algo"]

@@ -19,7 +19,7 @@ REQUIRED = ("config", "actor", "frames")
 # 0.1.0) wrote the string tag LEGACY_TAG instead; its configs may lack keys added since, which
 # :func:`upgrade` fills with the values the format-1 code used. Bump FORMAT when a change to the
 # saved fields or config needs an upgrade step, and add that step to UPGRADES.
-FORMAT = 8
+FORMAT = 9
 LEGACY_TAG = "crowdbench-checkpoint-v1"
 
 
@@ -126,8 +126,17 @@ def _upgrade_7(state: dict) -> dict:
     return state
 
 
+def _upgrade_8(state: dict) -> dict:
+    """Format 8 -> 9: ``algo.actor_base`` (a residual on ORCA) appeared for the noise-explored actors; a run
+    before it had a plain actor."""
+    algo = state["config"].get("algo", {})
+    if "actor_squash" in algo:
+        algo.setdefault("actor_base", "none")
+    return state
+
+
 UPGRADES = {1: _upgrade_1, 2: _upgrade_2, 3: _upgrade_3, 4: _upgrade_4, 5: _upgrade_5, 6: _upgrade_6,
-            7: _upgrade_7}  # format n -> n + 1
+            7: _upgrade_7, 8: _upgrade_8}  # format n -> n + 1
 
 
 def upgrade(state: dict, version: int) -> dict:
@@ -196,7 +205,7 @@ class LearnedPolicy(Policy):
 
 def policy_from_checkpoint(path: Path) -> LearnedPolicy:
     """Rebuild the actor from a checkpoint's config and load its weights (shapes checked)."""
-    from crowdbench.algos.actors import build_actor
+    from crowdbench.algos.actors import actor_base, build_actor
 
     state = load_checkpoint(path)
     cfg = state["config"]
@@ -209,7 +218,7 @@ def policy_from_checkpoint(path: Path) -> LearnedPolicy:
             raise CheckpointError(f"checkpoint {path} does not fit its model: {' '.join(str(e).split())[:200]}") from None
     try:
         actor = build_actor(cfg["algo"]["name"], dict(cfg["encoder"]), cfg["env"]["v_max"],
-                            squash=cfg["algo"].get("actor_squash", "radial"))
+                            squash=cfg["algo"].get("actor_squash", "radial"), base=actor_base(cfg))
         actor.load_state_dict(state["actor"])
     except (KeyError, RuntimeError, ValueError, TypeError) as e:
         reason = " ".join(str(e).split())[:200]

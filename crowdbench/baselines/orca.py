@@ -155,11 +155,12 @@ class ORCA(Policy):
             pref = pref + self.perturb * np.stack((np.cos(ang), np.sin(ang)), 1)
         return pref
 
-    @torch.no_grad()
     def act(self, td: TensorDict) -> torch.Tensor:
-        robot_t = td[OBS + ("robot",)]
-        humans_t = td[OBS + ("humans",)]
-        mask_t = td[OBS + ("humans_mask",)]
+        return self.velocities(td[OBS + ("robot",)], td[OBS + ("humans",)], td[OBS + ("humans_mask",)])
+
+    @torch.no_grad()
+    def velocities(self, robot_t: torch.Tensor, humans_t: torch.Tensor, mask_t: torch.Tensor) -> torch.Tensor:
+        """ORCA's new velocity ``[*, 2]`` for observations ``[*, 6], [*, M, 4], [*, M]``."""
         lead = robot_t.shape[:-1]  # [B, A]
         robot = robot_t.detach().reshape(-1, 6).to(torch.float32).cpu().numpy()
         n = robot.shape[0]
