@@ -25,7 +25,8 @@ BASES = ("none", "orca")  # algo.actor_base
 class OrcaResidual(Actor):
     """``a = P(ORCA(s) + r(s))``: a learned residual on top of ORCA's velocity (``algo.actor_base=orca``).
 
-    ``r`` is :class:`~crowdbench.models.heads.Actor`'s squashed head (at most ``v_max``), its last layer
+    ``r`` is :class:`~crowdbench.models.heads.Actor`'s squashed head scaled to at most ``scale`` m/s
+    (``algo.actor_residual``; default ``v_max``), its last layer
     zeroed so that the untrained actor *is* ORCA; ``P`` scales the sum back into the speed disc. ORCA is
     computed from the observation alone (the ORCA baseline's solver and parameters, ``baselines/orca.py``),
     so nothing is privileged. Why: a cloned actor imitates ORCA to a held-out action error of 0.013 and still
@@ -33,16 +34,17 @@ class OrcaResidual(Actor):
     docs/training.md), while the residual starts exactly at ORCA and RL only has to learn the corrections.
     The base carries no gradient: the actor's gradient reaches the residual only."""
 
-    def __init__(self, encoder: nn.Module, hidden, v_max: float, squash: str, base):
+    def __init__(self, encoder: nn.Module, hidden, v_max: float, squash: str, base, scale: float | None = None):
         super().__init__(encoder, hidden, v_max, squash)
         self.base = [base]  # in a list: a solver, not a submodule (no parameters, not in the state dict)
+        self.scale = float(v_max if scale is None else scale)  # the residual's largest speed (m/s)
         nn.init.zeros_(self.head[-1].weight)
         nn.init.zeros_(self.head[-1].bias)
 
     def forward(self, robot, humans=None, humans_mask=None) -> torch.Tensor:
         robot, humans, humans_mask = unpack_obs(robot, humans, humans_mask)
         _, h = self.encoder(robot, humans, humans_mask)
-        a = self.base[0].velocities(robot, humans, humans_mask).to(h.dtype) + self.act(h)
+        a = self.base[0].velocities(robot, humans, humans_mask).to(h.dtype) + self.act(h) * (self.scale / self.v_max)
         return a * (self.v_max / a.norm(dim=-1, keepdim=True).clamp_min(self.v_max))
 
     def forward_prepared(self, prep: dict) -> torch.Tensor:
@@ -82,7 +84,7 @@ def leaf_action_spec(n_agents: int, v_max: float) -> Bounded:
 
 
 def build_actor(algo: str, encoder_cfg: dict, v_max: float, hidden=None, squash: str = "radial",
-                base=None) -> TensorDictModule:
+                base=None, residual: float | None = None) -> TensorDictModule:
     """Algorithm ``algo``'s policy network: deterministic (``squash``: models/heads.py Actor; a residual on
     ``base``'s velocity if given: :class:`OrcaResidual`) or a TanhNormal ``ProbabilisticActor`` that acts by
     its mode under deterministic exploration."""
@@ -90,7 +92,7 @@ def build_actor(algo: str, encoder_cfg: dict, v_max: float, hidden=None, squash:
     encoder = make_encoder(**encoder_cfg)
     if kind == "deterministic":
         return actor_module(Actor(encoder, hidden, v_max, squash) if base is None
-                            else OrcaResidual(encoder, hidden, v_max, squash, base))
+                            else OrcaResidual(encoder, hidden, v_max, squash, base, residual))
     if base is not None:
         raise ValueError(f"algo.actor_base needs a deterministic actor; {algo}'s is {kind}")
     params = TensorDictModule(GaussianHead(encoder, hidden), in_keys=list(OBS_KEYS),

@@ -32,7 +32,8 @@ class Algorithm:
         self.cfg, self.a, self.n_agents = cfg, cfg.algo, n_agents
         self.v_max = cfg.env.v_max
         self.actor = build_actor(self.name, OmegaConf.to_container(cfg.encoder), self.v_max,
-                                 squash=self.a.get("actor_squash", "radial"), base=actor_base(cfg))
+                                 squash=self.a.get("actor_squash", "radial"), base=actor_base(cfg),
+                                 residual=self.a.get("actor_residual"))
         self.updates = 0  # gradient steps so far (checkpointed by the loop)
         self.generator = torch.Generator().manual_seed(int(cfg.seed))  # minibatch / replay sampling
 

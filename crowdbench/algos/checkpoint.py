@@ -127,11 +127,12 @@ def _upgrade_7(state: dict) -> dict:
 
 
 def _upgrade_8(state: dict) -> dict:
-    """Format 8 -> 9: ``algo.actor_base`` (a residual on ORCA) appeared for the noise-explored actors; a run
+    """Format 8 -> 9: ``algo.actor_base`` and ``algo.actor_residual`` (a residual on ORCA) appeared for the noise-explored actors; a run
     before it had a plain actor."""
     algo = state["config"].get("algo", {})
     if "actor_squash" in algo:
         algo.setdefault("actor_base", "none")
+        algo.setdefault("actor_residual", 1.0)
     return state
 
 
@@ -218,7 +219,8 @@ def policy_from_checkpoint(path: Path) -> LearnedPolicy:
             raise CheckpointError(f"checkpoint {path} does not fit its model: {' '.join(str(e).split())[:200]}") from None
     try:
         actor = build_actor(cfg["algo"]["name"], dict(cfg["encoder"]), cfg["env"]["v_max"],
-                            squash=cfg["algo"].get("actor_squash", "radial"), base=actor_base(cfg))
+                            squash=cfg["algo"].get("actor_squash", "radial"), base=actor_base(cfg),
+                            residual=cfg["algo"].get("actor_residual"))
         actor.load_state_dict(state["actor"])
     except (KeyError, RuntimeError, ValueError, TypeError) as e:
         reason = " ".join(str(e).split())[:200]

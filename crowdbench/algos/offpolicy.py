@@ -72,6 +72,7 @@ class NoisyActorConfig(OffPolicyConfig):
     ou_theta: float = bounded(0.125, gt=0, le=1)  # OU mean reversion per step
     actor_squash: str = bounded("radial", choices=("radial", "box"))
     actor_base: str = bounded("none", choices=BASES)  # orca: a residual on ORCA's velocity (algos/actors.py)
+    actor_residual: float = bounded(1.0, gt=0)  # m/s, the residual's largest speed (actor_base=orca)
 
 
 def make_buffer(a, generator: torch.Generator):

@@ -1,0 +1,128 @@
+"""``algo.actor_base=orca``: the actor is ORCA plus a learned residual (crowdbench/algos/actors.py OrcaResidual)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+import torch
+
+from crowdbench.algos.actors import OrcaResidual
+from crowdbench.algos.checkpoint import load_checkpoint, policy_from_checkpoint
+from crowdbench.algos.td3 import TD3
+from crowdbench.algos.train import train
+from crowdbench.cli import compose
+from crowdbench.envs.factory import make_env
+from crowdbench.models.heads import OBS_KEYS, Actor
+from crowdbench.policies import build
+
+TINY = ["train.pretrain=null", "env.batch=4", "train.frames_per_batch=32", "algo.warmup=64", "algo.batch_size=8",
+        "train.utd=0.25", "train.checkpoint_every=64", "encoder.dim=16", "algo.actor_base=orca"]
+
+
+def _rollout_obs(cfg, steps: int = 12):
+    """Observations of a few steps of the training env driven by ORCA."""
+    env = make_env(cfg)
+    orca = build("orca", cfg)
+    td, seen = env.reset(), []
+    for _ in range(steps):
+        seen.append(td.select(*OBS_KEYS).clone())
+        td["agents", "action"] = orca.act(td)
+        td = env.step(td).get("next")
+    return torch.cat(seen)
+
+
+def test_the_untrained_actor_is_the_orca_baseline():
+    cfg = compose(TINY)
+    obs = _rollout_obs(cfg)
+    actor = TD3(cfg, 1).actor
+    assert isinstance(actor.module, OrcaResidual)
+    mine = actor(obs.clone())["agents", "action"]
+    theirs = build("orca", cfg).act(obs)  # the policy registry's ORCA, as `crowdbench eval policy=orca` builds it
+    assert obs["agents", "observation", "humans_mask"].any()
+    assert torch.equal(mine, theirs)
+
+
+def test_the_residual_is_added_then_scaled_into_the_speed_disc():
+    cfg = compose(TINY)
+    obs = _rollout_obs(cfg, steps=4)
+    actor = TD3(cfg, 1).actor.module
+    z = (0.6, -1.1)
+    with torch.no_grad():
+        actor.head[-1].bias.copy_(torch.tensor(z))
+    base = build("orca", cfg).act(obs).reshape(-1, 2).tolist()
+    got = actor(obs)
+    nz = math.hypot(*z)
+    res = [math.tanh(nz) * z[0] / nz, math.tanh(nz) * z[1] / nz]  # v_max = 1: the radial squash of z
+    expected = []
+    for bx, by in base:
+        sx, sy = bx + res[0], by + res[1]
+        n = math.hypot(sx, sy)
+        scale = 1.0 / n if n > 1.0 else 1.0
+        expected.append([sx * scale, sy * scale])
+    assert torch.allclose(got.reshape(-1, 2), torch.tensor(expected), atol=1e-6)
+    assert (got.norm(dim=-1) <= 1.0 + 1e-6).all()
+    assert any(math.hypot(bx + res[0], by + res[1]) > 1.0 for bx, by in base)  # the scaling was exercised
+
+
+def test_the_gradient_reaches_the_residual_and_the_base_has_none():
+    cfg = compose(TINY)
+    obs = _rollout_obs(cfg, steps=4)
+    actor = TD3(cfg, 1).actor.module
+    actor(obs)[..., 0].sum().backward()
+    assert actor.head[-1].weight.grad.abs().sum() > 0
+    assert set(actor.state_dict()) == set(Actor(actor.encoder, None, 1.0).state_dict())  # ORCA adds no weights
+
+
+def test_a_run_checkpoints_and_its_policy_acts_as_in_training(tmp_path):
+    cfg = compose([*TINY, "train.total_frames=128"])
+    stats = train(cfg, tmp_path, progress=False)
+    assert stats["updates"] > 0
+    state = load_checkpoint(tmp_path / "checkpoint.pt")
+    assert state["config"]["algo"]["actor_base"] == "orca"
+    policy = policy_from_checkpoint(tmp_path / "checkpoint.pt")
+    assert isinstance(policy.actor.module, OrcaResidual)
+    obs = _rollout_obs(cfg, steps=3)
+    algo = TD3(cfg, 1)
+    algo.actor.load_state_dict(state["actor"])
+    assert torch.equal(policy.act(obs.clone()), algo.actor(obs.clone())["agents", "action"])
+    assert not torch.equal(policy.act(obs.clone()), build("orca", cfg).act(obs))  # it learned a residual
+
+
+def test_a_checkpoint_before_the_option_loads_with_a_plain_actor(tmp_path):
+    cfg = compose([*TINY, "train.total_frames=128"])
+    train(cfg, tmp_path, progress=False)
+    raw = torch.load(tmp_path / "checkpoint.pt", map_location="cpu", weights_only=True)
+    del raw["config"]["algo"]["actor_base"]
+    raw["format"] = 8
+    torch.save(raw, tmp_path / "old.pt")  # (save_checkpoint would stamp today's format)
+    assert load_checkpoint(tmp_path / "old.pt")["config"]["algo"]["actor_base"] == "none"
+    assert not isinstance(policy_from_checkpoint(tmp_path / "old.pt").actor.module, OrcaResidual)
+
+
+@pytest.mark.parametrize("bad", ["algo.actor_base=rvo", "algo=sac algo.actor_base=orca"])
+def test_a_bad_base_is_refused_in_one_line(bad, capsys):
+    from crowdbench.cli import main
+
+    rc = main(["run", *bad.split(), "train.total_frames=64", "out=/nonexistent/never"])
+    err = capsys.readouterr().err.strip()
+    assert rc != 0 and "actor_base" in err and len(err.splitlines()) == 1
+
+
+@pytest.mark.slow
+def test_a_residual_submission_acts_in_its_worker_as_in_process(tmp_path):
+    """ORCA's solver (pyrvo) inside the confined worker: the same bits as in-process."""
+    from crowdbench.leaderboard.loading import dummy_obs
+    from crowdbench.leaderboard.sandbox import Limits
+    from crowdbench.leaderboard.worker import WorkerPolicy
+
+    cfg = compose([*TINY, "train.total_frames=64"])
+    sub = tmp_path / "lb" / "submissions" / "res"
+    train(cfg, sub, progress=False)
+    (sub / "submission.yaml").write_text("name: res\nkind: learned\nentry: res\nencoder: gatedgcn\nalgo: td3\n"
+                                         "authors: [crowdbench]\n")
+    obs = dummy_obs(batch=4, humans=3)
+    with WorkerPolicy(sub, "res", Limits(step_s=20.0, load_s=120.0, memory_gb=6.0)) as p:
+        remote = p.act(obs)
+    assert torch.equal(remote, policy_from_checkpoint(Path(sub) / "checkpoint.pt").act(obs))
