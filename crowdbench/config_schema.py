@@ -278,7 +278,6 @@ class TrainConfig:
     probe_episodes: int = bounded(50, ge=1)
     logger: str = bounded("csv", choices=("csv", "tensorboard", "wandb"))  # crowdbench/algos/loggers.py
     progress_reward: float = 0.1
-    collision_penalty: float = bounded(0.0, ge=0)  # training only: subtracted on a collision (envs/transforms.py)
     human_dropout: float = bounded(0.0, ge=0, le=1)  # a probability
     # the training scene replayed at each of these speeds (1 = as recorded; env=replay; data/scenes.py playback_scene)
     playback_speeds: list[float] = field(default_factory=lambda: [1.0], metadata={"min_len": 1, "gt": 0, "le": 4})

@@ -9,7 +9,7 @@ from torchrl.envs.utils import check_env_specs
 from worlds import replay_sim, reset_v1
 
 from crowdbench.envs.factory import replay_env
-from crowdbench.envs.transforms import CollisionPenalty, HumanDropout, ProgressReward
+from crowdbench.envs.transforms import HumanDropout, ProgressReward
 
 
 @pytest.mark.parametrize("batch", [1, 4])
@@ -83,34 +83,6 @@ def test_progress_reward_pays_per_metre_towards_the_goal():
     progress = 8.0 - math.hypot(8.0 - 0.15, 0.2)
     assert rewards[1][0] - rewards[0][0] == pytest.approx(0.5 * progress, abs=1e-5)
     assert rewards[1][1] == rewards[0][1]  # standing still earns nothing
-
-
-def test_collision_penalty_is_charged_once_on_the_colliding_step():
-    """Straight to the goal in dense students001 collides in many episodes; the shaped reward differs from
-    the plain one by -c on exactly the step whose outcome turns to COLLISION (auto-resets included)."""
-    from crowdbench.envs.core import COLLISION, RUNNING
-
-    check_env_specs(TransformedEnv(replay_env("students001", 2, seed=3), CollisionPenalty(0.75)))
-    plain = replay_env("students001", 16, seed=3)
-    shaped = TransformedEnv(replay_env("students001", 16, seed=3), CollisionPenalty(0.75))
-
-    def straight(td):  # rotated frame: the goal lies along +x
-        return td.set(("agents", "action"), torch.tensor([1.0, 0.0]).expand(16, 1, 2).clone())
-
-    runs = [env.rollout(120, policy=straight, break_when_any_done=False) for env in (plain, shaped)]
-    a, b = runs
-    outcome = a["next", "agents", "info", "outcome"][..., 0]  # [B, T]
-    before = torch.cat((torch.full_like(outcome[:, :1], RUNNING), a["agents", "info", "outcome"][..., 1:, 0]), 1)
-    hits = 0
-    for e in range(16):
-        for t in range(outcome.shape[1]):
-            diff = (b["next", "agents", "reward"][e, t, 0, 0] - a["next", "agents", "reward"][e, t, 0, 0]).item()
-            new_collision = outcome[e, t].item() == COLLISION and before[e, t].item() == RUNNING
-            hits += new_collision
-            assert diff == pytest.approx(-0.75 if new_collision else 0.0, abs=1e-6)
-    assert hits > 0
-    with pytest.raises(ValueError, match="collision_penalty"):
-        CollisionPenalty(-1.0)
 
 
 def test_human_dropout_hides_humans_for_a_whole_episode():

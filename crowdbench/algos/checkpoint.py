@@ -127,15 +127,12 @@ def _upgrade_7(state: dict) -> dict:
 
 
 def _upgrade_8(state: dict) -> dict:
-    """Format 8 -> 9: ``algo.actor_base`` and ``algo.actor_residual`` (a residual on ORCA; the noise-explored
-    actors) and ``train.collision_penalty`` appeared; a run before them had a plain actor and the paper's
-    collision reward."""
+    """Format 8 -> 9: ``algo.actor_base`` and ``algo.actor_residual`` (a residual on ORCA) appeared for the noise-explored actors; a run
+    before it had a plain actor."""
     algo = state["config"].get("algo", {})
     if "actor_squash" in algo:
         algo.setdefault("actor_base", "none")
         algo.setdefault("actor_residual", 1.0)
-    if "train" in state["config"]:
-        state["config"]["train"].setdefault("collision_penalty", 0.0)
     return state
 
 

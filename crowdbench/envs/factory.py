@@ -152,18 +152,17 @@ def training_world(env_cfg, batch: int, playback_speeds=(1.0,)):
     return WORLDS[name].playback(env_cfg, sim_config(env_cfg), batch, speeds)
 
 
-def make_env(cfg, progress_reward: float = 0.0, human_dropout: float = 0.0, extra=(), playback_speeds=(1.0,),
-             collision_penalty: float = 0.0):
+def make_env(cfg, progress_reward: float = 0.0, human_dropout: float = 0.0, extra=(), playback_speeds=(1.0,)):
     """The TorchRL env of ``cfg.env``, ``env.batch`` wide, seeded with ``cfg.seed``.
 
-    ``progress_reward`` (``train.progress_reward``), ``collision_penalty`` (``train.collision_penalty``) and
-    ``human_dropout`` (``train.human_dropout``) are training-only transforms (:mod:`crowdbench.envs.transforms`); ``extra`` transforms go after them.
+    ``progress_reward`` (``train.progress_reward``) and ``human_dropout`` (``train.human_dropout``)
+    are training-only transforms (:mod:`crowdbench.envs.transforms`); ``extra`` transforms go after them.
     ``playback_speeds`` (``train.playback_speeds``): :func:`training_world`.
     """
     from torchrl.envs import Compose, TransformedEnv
 
     from crowdbench.envs.torchrl_env import CrowdEnv
-    from crowdbench.envs.transforms import CollisionPenalty, HumanDropout, ProgressReward
+    from crowdbench.envs.transforms import HumanDropout, ProgressReward
 
     world, scenario = training_world(cfg.env, int(cfg.env.batch), playback_speeds)
     env = CrowdEnv(world, scenario, seed=cfg.seed)
@@ -172,8 +171,6 @@ def make_env(cfg, progress_reward: float = 0.0, human_dropout: float = 0.0, extr
         transforms.append(HumanDropout(human_dropout, cfg.seed, world.M, world.Mh))
     if progress_reward:
         transforms.append(ProgressReward(progress_reward))
-    if collision_penalty:
-        transforms.append(CollisionPenalty(collision_penalty))
     transforms += list(extra)
     return TransformedEnv(env, Compose(*transforms)) if transforms else env
 

@@ -1,4 +1,4 @@
-"""Training-only TorchRL transforms of the crowd env: progress shaping, a collision penalty and human dropout.
+"""Training-only TorchRL transforms of the crowd env: progress shaping and human dropout.
 
 Evaluation never uses them: the evaluation loop runs the bare env, so the paper's reward and
 every human are what is reported.
@@ -10,11 +10,9 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.envs.transforms import Transform
 
-from crowdbench.envs.core import COLLISION, RUNNING
 from crowdbench.envs.policy import GROUP
 
 _DIST = (GROUP, "info", "goal_dist")
-_OUTCOME = (GROUP, "info", "outcome")
 _REWARD = (GROUP, "reward")
 
 
@@ -53,34 +51,6 @@ class ProgressReward(Transform):
         reward = next_tensordict.get(_REWARD)
         next_tensordict.set(_REWARD, reward + (self.coef * (self._dist - after)).unsqueeze(-1))
         self._dist = after.clone()
-        return next_tensordict
-
-
-class CollisionPenalty(Transform):
-    """Adds ``-c`` on the step an agent collides (its ``info/outcome`` turns from RUNNING to COLLISION).
-
-    The paper's reward charges a collision ``r_fail = -0.25``, about as much as three steps closer than
-    0.2 m to a human (``-0.1 + d/2`` each): a policy that maximises it may trade collisions for fewer
-    close passes and a faster path (docs/training.md measures it). ``train.collision_penalty`` makes a
-    collision dearer in training only; the evaluation keeps the paper's reward."""
-
-    def __init__(self, coef: float):
-        super().__init__(in_keys=[], out_keys=[])
-        if coef < 0:
-            raise ValueError(f"train.collision_penalty must be >= 0 (it is subtracted), got {coef}")
-        self.coef = float(coef)
-        self._running: torch.Tensor | None = None
-
-    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
-        self._running = tensordict_reset.get(_OUTCOME) == RUNNING  # every env's status now, reset or not
-        return tensordict_reset
-
-    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
-        outcome = next_tensordict.get(_OUTCOME)
-        hit = self._running & (outcome == COLLISION)
-        reward = next_tensordict.get(_REWARD)
-        next_tensordict.set(_REWARD, reward - (self.coef * hit.to(reward.dtype)).unsqueeze(-1))
-        self._running = outcome == RUNNING
         return next_tensordict
 
 
