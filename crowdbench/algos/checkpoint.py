@@ -127,10 +127,10 @@ def _upgrade_7(state: dict) -> dict:
 
 
 def _upgrade_8(state: dict) -> dict:
-    """Format 8 -> 9: ``algo.actor_base`` and ``algo.actor_residual`` (a residual on ORCA) appeared for the noise-explored actors; a run
-    before it had a plain actor."""
+    """Format 8 -> 9: ``algo.actor_base`` and ``algo.actor_residual`` (a residual on ORCA) appeared for the
+    off-policy algorithms; a run before them had a plain actor."""
     algo = state["config"].get("algo", {})
-    if "actor_squash" in algo:
+    if algo.get("name") in ("td3", "ddpg", "sac", "matd3"):
         algo.setdefault("actor_base", "none")
         algo.setdefault("actor_residual", 1.0)
     return state

@@ -61,6 +61,9 @@ class OffPolicyConfig:
     per_alpha: float = bounded(0.6, ge=0, le=1)
     per_beta: float = bounded(0.4, ge=0, le=1)
     per_weights: bool = False  # PER's importance-sampling weights in the losses
+    # orca: a deterministic actor adds a learned residual to ORCA's velocity (algos/actors.py OrcaResidual)
+    actor_base: str = bounded("none", choices=BASES)
+    actor_residual: float = bounded(1.0, gt=0)  # m/s, the residual's largest speed (actor_base=orca)
 
 
 @dataclass
@@ -71,8 +74,6 @@ class NoisyActorConfig(OffPolicyConfig):
     exploration: str = bounded("gaussian", choices=("gaussian", "ou"))
     ou_theta: float = bounded(0.125, gt=0, le=1)  # OU mean reversion per step
     actor_squash: str = bounded("radial", choices=("radial", "box"))
-    actor_base: str = bounded("none", choices=BASES)  # orca: a residual on ORCA's velocity (algos/actors.py)
-    actor_residual: float = bounded(1.0, gt=0)  # m/s, the residual's largest speed (actor_base=orca)
 
 
 def make_buffer(a, generator: torch.Generator):
