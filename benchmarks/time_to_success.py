@@ -44,6 +44,8 @@ RECIPES = {
     "rgl": (["experiment=baselines", "method=rgl_td3"], 3584),
     # the same with the ORCA warm start and cloning term of td3_orca: the named experiment
     "rgl_orca": (["experiment=warmstart"], 3584),
+    # the card's command, crowdbench run algo=td3 encoder=gatedgcn: the default config (a residual on ORCA)
+    "default": ([], 3584),
     # MP-GatedGCN with the same warm start at the leaderboard recipe (prioritized replay, 28,672 frames); with
     # algo.replay=uniform it is the default recipe's training config
     "gatedgcn_orca": (["experiment=warmstart", "method=gatedgcn_td3"], 3584),

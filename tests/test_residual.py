@@ -44,8 +44,9 @@ def test_the_untrained_actor_is_the_orca_baseline():
     assert torch.equal(mine, theirs)
 
 
-def test_the_residual_is_added_then_scaled_into_the_speed_disc():
-    cfg = compose(TINY)
+@pytest.mark.parametrize("scale", [1.0, 0.3])
+def test_the_residual_is_added_then_scaled_into_the_speed_disc(scale):
+    cfg = compose([*TINY, f"algo.actor_residual={scale}"])
     obs = _rollout_obs(cfg, steps=4)
     actor = TD3(cfg, 1).actor.module
     z = (0.6, -1.1)
@@ -54,7 +55,7 @@ def test_the_residual_is_added_then_scaled_into_the_speed_disc():
     base = build("orca", cfg).act(obs).reshape(-1, 2).tolist()
     got = actor(obs)
     nz = math.hypot(*z)
-    res = [math.tanh(nz) * z[0] / nz, math.tanh(nz) * z[1] / nz]  # v_max = 1: the radial squash of z
+    res = [scale * math.tanh(nz) * z[0] / nz, scale * math.tanh(nz) * z[1] / nz]  # the radial squash of z
     expected = []
     for bx, by in base:
         sx, sy = bx + res[0], by + res[1]

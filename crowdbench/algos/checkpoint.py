@@ -132,7 +132,7 @@ def _upgrade_8(state: dict) -> dict:
     algo = state["config"].get("algo", {})
     if algo.get("name") in ("td3", "ddpg", "sac", "matd3"):
         algo.setdefault("actor_base", "none")
-        algo.setdefault("actor_residual", 1.0)
+        algo.setdefault("actor_residual", 0.15)
     return state
 
 

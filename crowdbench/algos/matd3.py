@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 
 from tensordict.nn import TensorDictModule
 
+from crowdbench.algos.actors import BASES
 from crowdbench.algos.offpolicy import KEEP
 from crowdbench.algos.td3 import TD3, TD3Config
 from crowdbench.envs.policy import ACTION, GROUP, OBS
@@ -27,6 +28,7 @@ class MATD3Config(TD3Config):
     """``algo=matd3``."""
 
     name: str = bounded("matd3", choices=("matd3",))
+    actor_base: str = bounded("none", choices=BASES)  # self-play rows: a plain actor (algos/actors.py)
     critic_dim: int = bounded(64, ge=1)  # the scene critic's per-body width
     critic_hidden: list[int] = field(default_factory=lambda: [128, 128], metadata={"ge": 1, "min_len": 1})
 

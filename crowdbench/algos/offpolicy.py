@@ -63,7 +63,7 @@ class OffPolicyConfig:
     per_weights: bool = False  # PER's importance-sampling weights in the losses
     # orca: a deterministic actor adds a learned residual to ORCA's velocity (algos/actors.py OrcaResidual)
     actor_base: str = bounded("none", choices=BASES)
-    actor_residual: float = bounded(1.0, gt=0)  # m/s, the residual's largest speed (actor_base=orca)
+    actor_residual: float = bounded(0.15, gt=0)  # m/s, the residual's largest speed (actor_base=orca)
 
 
 @dataclass

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 from torchrl.objectives import TD3Loss
 
+from crowdbench.algos.actors import BASES
 from crowdbench.algos.offpolicy import NoisyActorConfig, OffPolicyAlgorithm
 from crowdbench.schema_fields import bounded
 
@@ -19,6 +20,7 @@ class TD3Config(NoisyActorConfig):
     policy_delay: int = bounded(2, ge=1)  # actor + targets every 2 critic updates (TD3's default)
     policy_noise: float = bounded(0.2, ge=0)  # target policy smoothing
     noise_clip: float = bounded(0.5, ge=0)
+    actor_base: str = bounded("orca", choices=BASES)  # the default recipe: a residual on ORCA (algos/actors.py)
 
 
 class FirstCriticTD3Loss(TD3Loss):
