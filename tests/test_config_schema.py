@@ -51,7 +51,9 @@ PARTS = [f"{kind}:{o}" for kind, group in (("exp", "experiment"), ("env", "env")
 
 
 RADIUS_ENCODERS = ('gat', 'gatedgcn', 'gcn')  # the encoders with an edge radius (encoder.radius2)
-OFF_POLICY_EXPERIMENTS = ("paper", "leaderboard", "baselines", "crowdnav", "crowdnav_distill", "reactive", "warmstart")  # they set algo.replay
+# they set algo.replay or algo.actor_base
+OFF_POLICY_EXPERIMENTS = ("paper", "leaderboard", "baselines", "crowdnav", "crowdnav_distill", "reactive", "warmstart",
+                          "leaderboard_long", "selfplay_warmstart")
 
 
 def _algo_of(method: str) -> str:
@@ -76,7 +78,7 @@ def test_every_shipped_config_combination_validates_and_every_key_has_a_schema_f
                     f"experiment={e}" in overrides for e in OFF_POLICY_EXPERIMENTS):
                 # an off-policy recipe's replay settings are no PPO-family keys
                 with pytest.raises(ConfigError,
-                                   match=r"^algo\.(replay|exploration_sigma): algo='(ppo|ippo|mappo)' has no such key"):
+                                   match=r"^algo\.(replay|exploration_sigma|actor_base): algo='(ppo|ippo|mappo)' has no such key"):
                     validate(cfg)
                 continue
             value_method = any(o.startswith("method=") and o.endswith("_value") for o in overrides)

@@ -17,7 +17,8 @@ from crowdbench.models.heads import STATE_ACTION_VALUE, prepare_batch
 TINY = ["env.batch=8", "train.frames_per_batch=64", "algo.warmup=128", "algo.batch_size=16", "train.utd=0.125",
         "train.checkpoint_every=128"]
 MLP = ["encoder=mlp", "encoder.dim=16", "encoder.hidden=[32]"]
-SMALL = {"td3": ["algo=td3", *MLP], "ddpg": ["algo=ddpg", "algo.n_steps=3", *MLP],
+# plain actors: what the imitation fits (TD3's default actor, a residual on ORCA, starts at ORCA's actions)
+SMALL = {"td3": ["algo=td3", "algo.actor_base=none", *MLP], "ddpg": ["algo=ddpg", "algo.n_steps=3", *MLP],
          "sac": ["algo=sac", "encoder=gatedgcn", "encoder.dim=16"]}
 
 

@@ -154,11 +154,11 @@ class OffPolicyAlgorithm(Algorithm):
         # TorchRL's losses hand the target critic what they selected of the next state for the target actor:
         # a critic that reads more than the actor's prepared graphs needs it listed among the actor's inputs
         carry = [k for k in critic.in_keys if k != ACTION] if self.critic_reads_raw(horizon) else []
-        # an actor on an ORCA base reads the raw observation (algos/actors.py OrcaResidual)
-        prep_actor = self.prepared and not isinstance(self.actor.module, OrcaResidual)
+        if isinstance(self.actor.module, OrcaResidual):
+            # ORCA reads the raw observation, so the actor (and then the critics) read it in the losses too
+            self.prepared = False
         if self.prepared:  # ``self.actor`` stays the raw-observation module for acting
-            if prep_actor:
-                actor = actor_module(self.actor.module, prepared=True, carry=carry)
+            actor = actor_module(self.actor.module, prepared=True, carry=carry)
             critic_in = critic if self.critic_reads_raw(horizon) else critic_module(critic.module, prepared=True)
         else:
             critic_in = critic
@@ -171,8 +171,8 @@ class OffPolicyAlgorithm(Algorithm):
         # n-step transitions (algos/nstep.py) carry their length m: the bootstrap is discounted by gamma^m
         loss.value_estimator.set_keys(steps_to_next_obs=STEPS)
         # graphs built once per sampled batch, for the networks that read them (a lookahead critic builds its own)
-        self.encoders = (((self.actor.module.encoder,) if prep_actor else ())
-                         + (() if self.critic_reads_raw(horizon) else (critic.module.encoder,))
+        self.encoders = ((self.actor.module.encoder,) + (() if self.critic_reads_raw(horizon) else
+                                                         (critic.module.encoder,))
                          if self.prepared else ())
         # a critic that reads no prepared graph: a critic-only step needs the next observation's only
         self.root_every_step = not self.critic_reads_raw(horizon)
