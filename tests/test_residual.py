@@ -91,6 +91,16 @@ def test_a_run_checkpoints_and_its_policy_acts_as_in_training(tmp_path):
     assert not torch.equal(policy.act(obs.clone()), build("orca", cfg).act(obs))  # it learned a residual
 
 
+@pytest.mark.parametrize("algo", ["td3", "ddpg"])
+def test_it_trains_with_the_papers_critic_too(algo, tmp_path):
+    """The paper's critic reads graphs prepared once per batch for a plain actor; beside an ORCA residual it
+    reads the raw observation (the actor needs it, and TorchRL's target step hands the critic the actor's keys)."""
+    cfg = compose([*TINY, f"algo={algo}", "algo.critic_lookahead=0", "train.total_frames=96"])
+    stats = train(cfg, tmp_path, progress=False)
+    assert stats["updates"] > 0
+    assert isinstance(policy_from_checkpoint(tmp_path / "checkpoint.pt").actor.module, OrcaResidual)
+
+
 def test_a_checkpoint_before_the_option_loads_with_a_plain_actor(tmp_path):
     cfg = compose([*TINY, "train.total_frames=128"])
     train(cfg, tmp_path, progress=False)
