@@ -60,9 +60,8 @@ def actor_base(cfg):
     if name == "none":
         return None
     from crowdbench.baselines.orca import ORCA
-    from crowdbench.baselines.params import params
 
-    return ORCA(**params("orca", cfg), frame=cfg["env"]["frame"])
+    return ORCA.from_config(cfg)
 
 
 class GaussianHead(nn.Module):

@@ -55,9 +55,8 @@ def expert_policy(cfg, env=None):
             raise ValueError("train.pretrain=checkpoint needs train.pretrain_checkpoint=PATH")
         return CheckpointExpert(cfg.train.pretrain_checkpoint, env, cfg.env.frame, cfg.env.v_max)
     from crowdbench.baselines.orca import ORCA
-    from crowdbench.baselines.params import params
 
-    return ORCA(**params("orca", cfg), frame=cfg.env.frame)
+    return ORCA.from_config(cfg)
 
 
 def returns_to_go(reward: torch.Tensor, done: torch.Tensor, gamma: float) -> tuple[torch.Tensor, torch.Tensor]:

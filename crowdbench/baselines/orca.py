@@ -142,6 +142,14 @@ class ORCA(Policy):
         self.pref_rule = pref_rule
         self.frame = frame
 
+    @classmethod
+    def from_config(cls, cfg) -> ORCA:
+        """ORCA as ``policy=orca`` builds it from a composed config (dict or DictConfig): the ``orca`` section,
+        the env's dynamics, the seed, in the env's observation frame (the warm start's expert, a residual's base)."""
+        from crowdbench.baselines.params import params
+
+        return cls(**params("orca", cfg), frame=cfg["env"]["frame"])
+
     def preferred_velocity(self, robot: np.ndarray) -> np.ndarray:
         """``[N, 2]`` preferred velocities (float64) for ``[N, 6]`` robot rows, perturbed."""
         r = robot.astype(np.float64)
