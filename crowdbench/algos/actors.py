@@ -26,8 +26,8 @@ class OrcaResidual(Actor):
     """``a = P(ORCA(s) + r(s))``: a learned residual on top of ORCA's velocity (``algo.actor_base=orca``).
 
     ``r`` is :class:`~crowdbench.models.heads.Actor`'s squashed head scaled to at most ``scale`` m/s
-    (``algo.actor_residual``; default ``v_max``), its last layer
-    zeroed so that the untrained actor *is* ORCA; ``P`` scales the sum back into the speed disc. ORCA is
+    (``algo.actor_residual``; default ``v_max``), its last layer zeroed so that the untrained actor *is*
+    ORCA; ``P`` scales the sum back into the speed disc. ORCA is
     computed from the observation alone (the ORCA baseline's solver and parameters, ``baselines/orca.py``),
     so nothing is privileged. Why: a cloned actor imitates ORCA to a held-out action error of 0.013 and still
     drives at 0.53-0.55 on protocol v1 against ORCA's 0.935 (the errors compound over an episode;
