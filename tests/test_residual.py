@@ -137,3 +137,50 @@ def test_a_residual_submission_acts_in_its_worker_as_in_process(tmp_path):
     with WorkerPolicy(sub, "res", Limits(step_s=20.0, load_s=120.0, memory_gb=6.0)) as p:
         remote = p.act(obs)
     assert torch.equal(remote, policy_from_checkpoint(Path(sub) / "checkpoint.pt").act(obs))
+
+
+def _collected(cfg, algo, steps: int = 6):
+    """A collected ``[B, T]`` batch of the training env, acted by the residual actor."""
+    env = make_env(cfg)
+    with torch.no_grad():
+        return env.rollout(steps, algo.actor, break_when_any_done=False)
+
+
+def test_updates_read_the_base_stored_with_each_transition(monkeypatch):
+    """ORCA runs once per collected observation (next ones too); the updates never run its solver, and what
+    they read equals what the solver gives for the same observations."""
+    from crowdbench.baselines.orca import ORCA
+    from crowdbench.models.heads import BASE_ACTION
+
+    cfg = compose([*TINY, "algo.warmup=0"])
+    algo = TD3(cfg, 1)
+    batch = _collected(cfg, algo)
+    orca = build("orca", cfg)
+    algo.store_base(batch)
+    for pre in ((), ("next",)):
+        obs = [batch.get((*pre, *k)) for k in OBS_KEYS]
+        assert torch.equal(batch.get((*pre, *BASE_ACTION)), orca.velocities(*obs))
+    algo.rb.extend(batch.reshape(-1).select(*algo.keep))
+    sample = algo.rb.sample()
+    before = algo.actor(sample.select(*OBS_KEYS).clone())["agents", "action"]
+
+    def refuse(*a, **k):
+        raise AssertionError("ORCA's solver ran in an update")
+
+    monkeypatch.setattr(ORCA, "velocities", refuse)
+    assert torch.equal(algo.actor(sample.clone())["agents", "action"], before)  # the stored base, same bits
+    for n in range(4):  # critic-only and full steps (the target actor, the actor term)
+        algo.update(sample.clone(), n)
+
+
+def test_a_buffer_without_stored_bases_gets_them_on_resume():
+    """A replay buffer saved before the bases were stored (a resume) is completed, not refused."""
+    from crowdbench.models.heads import BASE_ACTION
+
+    cfg = compose(TINY)
+    algo = TD3(cfg, 1)
+    batch = _collected(cfg, algo).reshape(-1)
+    algo.rb.extend(batch.select(*[k for k in algo.keep if BASE_ACTION[-1] not in k]))
+    algo.fill_base()
+    stored = algo.rb.storage.get(torch.arange(len(algo.rb)))
+    assert torch.equal(stored.get(BASE_ACTION), algo.store_base(batch.clone()).get(BASE_ACTION))

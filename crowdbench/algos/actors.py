@@ -16,7 +16,7 @@ from crowdbench.algos.registry import actor_kind
 from crowdbench.envs.policy import ACTION, GROUP
 from crowdbench.models import make_encoder
 from crowdbench.models.graph import unpack_obs
-from crowdbench.models.heads import OBS_KEYS, Actor, actor_module, mlp
+from crowdbench.models.heads import BASE_ACTION, OBS_KEYS, Actor, actor_module, mlp
 
 LOG_PROB = (GROUP, "action_log_prob")
 BASES = ("none", "orca")  # algo.actor_base
@@ -41,11 +41,29 @@ class OrcaResidual(Actor):
         nn.init.zeros_(self.head[-1].weight)
         nn.init.zeros_(self.head[-1].bias)
 
-    def forward(self, robot, humans=None, humans_mask=None) -> torch.Tensor:
+    extra_keys = (BASE_ACTION,)
+
+    def forward(self, robot, humans=None, humans_mask=None, base=None) -> torch.Tensor:
+        """``base``: ORCA's velocity for this observation if already computed (:meth:`store_base`), else computed."""
         robot, humans, humans_mask = unpack_obs(robot, humans, humans_mask)
         _, h = self.encoder(robot, humans, humans_mask)
-        a = self.base[0].velocities(robot, humans, humans_mask).to(h.dtype) + self.act(h) * (self.scale / self.v_max)
+        if base is None:
+            base = self.base[0].velocities(robot, humans, humans_mask)
+        a = base.to(h.dtype) + self.act(h) * (self.scale / self.v_max)
         return a * (self.v_max / a.norm(dim=-1, keepdim=True).clamp_min(self.v_max))
+
+    def store_base(self, td):
+        """Sets :data:`BASE_ACTION` (and ``("next", *BASE_ACTION)``) of ``td``'s observations in place.
+
+        ORCA's solver runs per observation, so a velocity computed here for a batch of collected transitions
+        is bit for bit the one the forward pass computes for the same observation in any sampled batch:
+        the updates read it instead of running the solver for the actor term, the target actor and the
+        cloning term (about 1,600 observations per collection step of 16 environments, against 32 here)."""
+        for pre in ((), ("next",)):
+            if (*pre, *OBS_KEYS[0]) in td.keys(True):
+                obs = [td.get((*pre, *k)) for k in OBS_KEYS]
+                td.set((*pre, *BASE_ACTION), self.base[0].velocities(*obs))
+        return td
 
     def forward_prepared(self, prep: dict) -> torch.Tensor:
         raise ValueError("an actor on an ORCA base reads the raw observation (ORCA needs it): use actor_module(prepared=False)")

@@ -28,6 +28,7 @@ from crowdbench.algos.resume import compact_storage, remove_stale_buffers, resto
 from crowdbench.envs.policy import ACTION, GROUP
 from crowdbench.models import make_encoder
 from crowdbench.models.heads import (
+    BASE_ACTION,
     STATE_ACTION_VALUE,
     Critic,
     actor_module,
@@ -154,9 +155,12 @@ class OffPolicyAlgorithm(Algorithm):
         # TorchRL's losses hand the target critic what they selected of the next state for the target actor:
         # a critic that reads more than the actor's prepared graphs needs it listed among the actor's inputs
         carry = [k for k in critic.in_keys if k != ACTION] if self.critic_reads_raw(horizon) else []
-        if isinstance(self.actor.module, OrcaResidual):
+        # a residual's base velocities are stored with each transition (OrcaResidual.store_base)
+        self.residual = self.actor.module if isinstance(self.actor.module, OrcaResidual) else None
+        if self.residual is not None:
             # ORCA reads the raw observation, so the actor (and then the critics) read it in the losses too
             self.prepared = False
+            self.keep = (*self.keep, BASE_ACTION, ("next", *BASE_ACTION))
         if self.prepared:  # ``self.actor`` stays the raw-observation module for acting
             actor = actor_module(self.actor.module, prepared=True, carry=carry)
             critic_in = critic if self.critic_reads_raw(horizon) else critic_module(critic.module, prepared=True)
@@ -247,6 +251,7 @@ class OffPolicyAlgorithm(Algorithm):
         a = self.a
         if a.n_steps > 1:
             batch = n_step(batch, a.n_steps, a.gamma)
+        self.store_base(batch)
         self.rb.extend(agent_transitions(batch, [*self.keep, *[STEPS] * (a.n_steps > 1)]))
         logs: dict[str, float] = {}
         if len(self.rb) >= a.warmup:
@@ -262,6 +267,7 @@ class OffPolicyAlgorithm(Algorithm):
         """Behaviour cloning of the actor and ``Q(s, a_demo) -> return`` for each critic
         (``crowdbench/algos/pretrain.py``), targets synced, the demonstrations into the replay buffer."""
         prepare = (lambda td: prepare_batch(td, *self.encoders, include_next=False)) if self.prepared else None
+        self.store_base(demos)
         critic = (self.critic_network(), self.critic_params(), STATE_ACTION_VALUE)
         logs = imitate(self.cfg, self.actor, self.actor_kind, demos, [critic], prepare)
         sync_targets(self.loss)
@@ -272,7 +278,11 @@ class OffPolicyAlgorithm(Algorithm):
 
     def clone_from(self, data) -> None:
         if self.cloning is not None:
-            self.cloning = DemoCloning(self.cfg, data)
+            self.cloning = DemoCloning(self.cfg, self.store_base(data))
+
+    def store_base(self, td):
+        """A residual actor's base velocities for ``td``'s observations, stored in it (the others: unchanged)."""
+        return td if self.residual is None else self.residual.store_base(td)
 
     def update(self, sample, n: int) -> dict[str, float]:
         """Gradient step ``n`` on a sampled batch: critics always; actor (and temperature) and targets
@@ -332,9 +342,17 @@ class OffPolicyAlgorithm(Algorithm):
             saved = OmegaConf.create(state["config"]["algo"])
             same = all(saved.get(k) == self.a.get(k) for k in REPLAY_KIND)
             restored = restore_buffer(self.rb, state, ckpt, same, lambda: make_buffer(saved, torch.Generator()))
+            if restored and self.residual is not None:
+                self.fill_base()
         self.generator.set_state(state["replay_rng"])
         self.rb.set_rng(self.generator)  # loads() installs a generator of its own: sample from the checkpointed one
         return restored
+
+    def fill_base(self) -> None:
+        """A buffer saved before base velocities were stored with the transitions gets them now (a resume)."""
+        stored = self.rb.storage._storage  # TorchRL's storage TensorDict, padded to its capacity on load
+        if BASE_ACTION not in stored.keys(True):
+            self.residual.store_base(stored)
 
     def after_save(self, out_dir: Path, extra: dict) -> None:
         ref = extra.get("replay")

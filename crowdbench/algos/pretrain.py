@@ -29,7 +29,7 @@ from crowdbench.algos.multiagent import agent_transitions, finished_episodes
 from crowdbench.algos.nstep import STEPS, n_step
 from crowdbench.envs.core import SUCCESS
 from crowdbench.envs.policy import ACTION, GROUP, OBS
-from crowdbench.models.heads import OBS_KEYS
+from crowdbench.models.heads import BASE_ACTION, OBS_KEYS
 
 EXPERTS = ("orca", "checkpoint")
 RETURN = (GROUP, "return_to_go")  # discounted, within the agent's episode, no bootstrap
@@ -138,7 +138,7 @@ def minibatches(n: int, size: int, epochs: int, generator: torch.Generator):
 
 def policy_action(actor, td: TensorDictBase, kind: str) -> torch.Tensor:
     """The action an evaluation would take (differentiable): a TanhNormal actor's deterministic sample."""
-    obs = td.select(*OBS_KEYS)
+    obs = td.select(*OBS_KEYS, BASE_ACTION, strict=False)  # a residual's stored base velocity, where present
     if kind == "tanh_normal":
         return actor.get_dist(obs).deterministic_sample
     return actor(obs).get(ACTION)
@@ -303,7 +303,7 @@ class DemoCloning:
         t = cfg.train
         self.weight, self.horizon, self.batch = float(t.pretrain_bc_weight), int(t.pretrain_bc_updates), \
             int(cfg.algo.batch_size)
-        self.demos = demos.select(*OBS_KEYS, ACTION) if demos is not None else None
+        self.demos = demos.select(*OBS_KEYS, BASE_ACTION, ACTION, strict=False) if demos is not None else None
         self.generator = torch.Generator().manual_seed(int(cfg.seed) + 1)
 
     def weight_at(self, updates: int) -> float:

@@ -49,6 +49,9 @@ from crowdbench.models.vmap_once import once
 
 OBS_KEYS = [OBS + ("robot",), OBS + ("humans",), OBS + ("humans_mask",)]
 STATE_ACTION_VALUE = (GROUP, "state_action_value")
+# an actor's base action for the observation (a residual on ORCA: algos/actors.py), computed once per collected
+# transition and stored with it, so that the updates read it instead of running the base's solver per batch
+BASE_ACTION = (GROUP, "base_action")
 
 
 def mlp(sizes: list[int]) -> nn.Sequential:
@@ -84,6 +87,8 @@ class Actor(nn.Module):
         self.squash = squash
         hidden = list(hidden) if hidden is not None else [encoder.out_dim]
         self.head = mlp([encoder.out_dim, *hidden, 2])
+
+    extra_keys: tuple = ()  # inputs read after the observation, when present (a residual's BASE_ACTION)
 
     def act(self, robot_h: torch.Tensor) -> torch.Tensor:
         z = self.head(robot_h)
@@ -226,7 +231,7 @@ def actor_module(actor: Actor, prepared: bool = False, carry: list | tuple = ())
         keys = prepared_keys(actor.encoder)
         keys = keys + [k for k in carry if k not in keys]
         return TensorDictModule(mod, in_keys=keys, out_keys=[ACTION])
-    return TensorDictModule(actor, in_keys=list(OBS_KEYS), out_keys=[ACTION])
+    return TensorDictModule(actor, in_keys=[*OBS_KEYS, *actor.extra_keys], out_keys=[ACTION])
 
 
 def critic_module(critic: Critic, prepared: bool = False) -> TensorDictModule:
