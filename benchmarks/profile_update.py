@@ -54,7 +54,6 @@ def make_learner(enc: str, overrides: list[str], frames: int, pseudo_vmap: bool 
     from torchrl.collectors import Collector
 
     from crowdbench.algos.multiagent import agent_transitions
-    from crowdbench.algos.offpolicy import KEEP
     from crowdbench.algos.registry import component
     from crowdbench.cli import compose
     from crowdbench.envs.factory import make_env
@@ -75,7 +74,7 @@ def make_learner(enc: str, overrides: list[str], frames: int, pseudo_vmap: bool 
     rb, policy = learner.rb, learner.collection_policy()
     for batch in Collector(env, policy, frames_per_batch=min(1024, frames), total_frames=frames,
                            auto_register_policy_transforms=False):
-        rb.extend(agent_transitions(batch, KEEP))
+        rb.extend(agent_transitions(learner.store_base(batch), learner.keep))  # as OffPolicyAlgorithm.learn
     return learner, rb, cfg
 
 
