@@ -274,7 +274,7 @@ def _square_testing_all(n, cfg, gen, tries=500):
         g = torch.where(vertical, torch.stack((-sign, along_g), -1), torch.stack((along_g, -sign), -1))
         return s, g
 
-    assert _square.__defaults__ == (tries,)
+    assert _square.__defaults__ == (tries, 20)
     start, goal = (x.view(n, A, 2) for x in draw(n * A))
     for _ in range(tries):
         close = torch.zeros(n, A, A, dtype=torch.bool)
@@ -298,3 +298,19 @@ def test_square_placement_tests_only_the_episodes_that_redrew(agents, width):
             got, ref = _square(n, cfg, got_gen), _square_testing_all(n, cfg, ref_gen)
             assert torch.equal(got[0], ref[0]) and torch.equal(got[1], ref[1])
             assert torch.equal(got_gen.get_state(), ref_gen.get_state())
+
+
+def test_a_jammed_square_episode_is_drawn_again_from_scratch():
+    """32 agents on the tracks' widened square (12.8 m) sometimes jam: no gap is left for a later agent.
+    Such an episode starts again instead of stopping a training run; the placements keep their spacing, and
+    an episode placed within the attempts draws what it drew before (the restart only follows a jam)."""
+    cfg = SelfPlayConfig(n_agents=32, scenario="square", square_width=12.8)
+    with pytest.raises(ValueError, match="could not place 32 agents"):
+        _square(4, cfg, torch.Generator().manual_seed(0), tries=150, restarts=0)
+    start, goal = _square(4, cfg, torch.Generator().manual_seed(0), tries=150, restarts=30)
+    far = torch.eye(32, dtype=torch.bool) * 1e3
+    for pts in (start, goal):
+        assert ((pts.unsqueeze(1) - pts.unsqueeze(2)).norm(dim=-1) + far).amin() >= cfg.min_spacing
+    placed = _square(4, cfg, torch.Generator().manual_seed(4), tries=150, restarts=0)
+    again = _square(4, cfg, torch.Generator().manual_seed(4), tries=150, restarts=30)
+    assert all(torch.equal(a, b) for a, b in zip(placed, again, strict=True))

@@ -109,12 +109,17 @@ def sample_episodes(n: int, cfg: SelfPlayConfig, gen: torch.Generator) -> tuple[
     return start, goal
 
 
-def _square(n: int, cfg: SelfPlayConfig, gen: torch.Generator, tries: int = 500) -> tuple[torch.Tensor, torch.Tensor]:
+def _square(n: int, cfg: SelfPlayConfig, gen: torch.Generator, tries: int = 500,
+            restarts: int = 20) -> tuple[torch.Tensor, torch.Tensor]:
     """Random start/goal pairs on opposite sides of the square, ``min_spacing`` apart.
 
     Sequential rejection, vectorised over environments and agents (the loop is over attempts):
     every agent whose start or goal is too close to a lower-numbered agent's redraws both. Each attempt
     tests only the episodes that redrew an agent in the one before: the same draws as testing all.
+    An episode still unplaced after ``tries`` attempts is jammed (its earlier agents leave no gap wide
+    enough: it happens at 32 agents on the widened square, once in a training run's ~30,000 episodes)
+    and is drawn again from scratch, up to ``restarts`` times; an episode placed within ``tries``
+    draws what it always drew, so the published lists are unchanged.
     """
     A, half = cfg.n_agents, cfg.square_width / 2
     earlier = torch.ones(A, A, dtype=torch.bool).tril(-1)  # [i, j]: j < i
@@ -131,20 +136,23 @@ def _square(n: int, cfg: SelfPlayConfig, gen: torch.Generator, tries: int = 500)
 
     start, goal = (x.view(n, A, 2) for x in draw(n * A))
     todo = torch.arange(n)  # the episodes that redrew an agent last time (the others cannot have a bad one)
-    for _ in range(tries):
-        s, g = start[todo], goal[todo]
-        close = torch.zeros(len(todo), A, A, dtype=torch.bool)
-        for pts in (s, g):
-            close |= (pts.unsqueeze(1) - pts.unsqueeze(2)).norm(dim=-1) < cfg.min_spacing
-        bad = (close & earlier).any(-1)  # [len(todo), A], in the order of the full [n, A] mask
-        k = int(bad.sum())
-        if k == 0:
-            return start, goal
-        s[bad], g[bad] = draw(k)
-        start[todo], goal[todo] = s, g
-        todo = todo[bad.any(-1)]
-    raise ValueError(f"could not place {A} agents {cfg.min_spacing} m apart in {tries} tries; "
-                     "raise env.square_width or lower env.min_spacing")
+    for restart in range(restarts + 1):
+        if restart:  # the jammed episodes start again
+            start[todo], goal[todo] = (x.view(len(todo), A, 2) for x in draw(len(todo) * A))
+        for _ in range(tries):
+            s, g = start[todo], goal[todo]
+            close = torch.zeros(len(todo), A, A, dtype=torch.bool)
+            for pts in (s, g):
+                close |= (pts.unsqueeze(1) - pts.unsqueeze(2)).norm(dim=-1) < cfg.min_spacing
+            bad = (close & earlier).any(-1)  # [len(todo), A], in the order of the full [n, A] mask
+            k = int(bad.sum())
+            if k == 0:
+                return start, goal
+            s[bad], g[bad] = draw(k)
+            start[todo], goal[todo] = s, g
+            todo = todo[bad.any(-1)]
+    raise ValueError(f"could not place {A} agents {cfg.min_spacing} m apart in {tries} tries, {restarts} times "
+                     "from scratch; raise env.square_width or lower env.min_spacing")
 
 
 class SelfPlayScenario:
