@@ -40,17 +40,6 @@ def pytest_addoption(parser):
                      help=f"record each test's seconds in {DURATIONS.name} (read to start the longest first)")
 
 
-def pytest_xdist_auto_num_workers(config):
-    """Workers for ``-n auto`` (pyproject's addopts): one per core for the quick suite, whose tests compute;
-    two per core with ``--full``, whose slow tests mostly wait on the processes they start (submission
-    workers importing torch, Ray nodes, Hydra's multirun): at one worker per core the full suite used 963 s
-    of CPU in 788 s on two cores (61%). ``CROWDBENCH_TEST_WORKERS`` overrides both."""
-    if os.environ.get("CROWDBENCH_TEST_WORKERS"):
-        return int(os.environ["CROWDBENCH_TEST_WORKERS"])
-    cores = len(os.sched_getaffinity(0))
-    return 2 * cores if config.getoption("--full") else cores
-
-
 def pytest_configure(config):
     config.addinivalue_line("markers", "slow: part of the full suite only (`pytest --full`, CI)")
 
