@@ -349,10 +349,17 @@ class OffPolicyAlgorithm(Algorithm):
         return restored
 
     def fill_base(self) -> None:
-        """A buffer saved before base velocities were stored with the transitions gets them now (a resume)."""
-        stored = self.rb.storage._storage  # TorchRL's storage TensorDict, padded to its capacity on load
-        if BASE_ACTION not in stored.keys(True):
-            self.residual.store_base(stored)
+        """A buffer saved before base velocities were stored with the transitions gets them now (a resume);
+        the rows past its length (the storage's padding to capacity) get zeros: they are never sampled."""
+        stored = self.rb.storage._storage  # TorchRL's storage TensorDict, padded to its capacity
+        if BASE_ACTION in stored.keys(True):
+            return
+        n = len(self.rb)
+        filled = self.residual.store_base(stored[:n].clone())
+        for key in (BASE_ACTION, ("next", *BASE_ACTION)):
+            full = torch.zeros(stored.shape[0], *filled.get(key).shape[1:], dtype=filled.get(key).dtype)
+            full[:n] = filled.get(key)
+            stored.set(key, full)
 
     def after_save(self, out_dir: Path, extra: dict) -> None:
         ref = extra.get("replay")
