@@ -29,6 +29,7 @@ from crowdbench.envs.policy import ACTION, GROUP
 from crowdbench.models import make_encoder
 from crowdbench.models.heads import (
     BASE_ACTION,
+    OBS_KEYS,
     STATE_ACTION_VALUE,
     Critic,
     actor_module,
@@ -355,10 +356,12 @@ class OffPolicyAlgorithm(Algorithm):
         if BASE_ACTION in stored.keys(True):
             return
         n = len(self.rb)
-        filled = self.residual.store_base(stored[:n].clone())
+        # the observations only, as views (no copy of the buffer): store_base adds its keys to this selection
+        filled = self.residual.store_base(stored[:n].select(*OBS_KEYS, *[("next", *k) for k in OBS_KEYS]))
         for key in (BASE_ACTION, ("next", *BASE_ACTION)):
-            full = torch.zeros(stored.shape[0], *filled.get(key).shape[1:], dtype=filled.get(key).dtype)
-            full[:n] = filled.get(key)
+            base = filled.get(key)
+            full = base.new_zeros(stored.shape[0], *base.shape[1:])
+            full[:n] = base
             stored.set(key, full)
 
     def after_save(self, out_dir: Path, extra: dict) -> None:
