@@ -186,7 +186,7 @@ def training_overrides(cfg: dict) -> list[str]:
     out = [f"algo={cfg['algo']['name']}", f"encoder={cfg['encoder']['name']}"]
     # a wall-time cap or a saved buffer is how a run was kept, not what it learned, except algo=value's
     # max_minutes: the length of its deep V-learning phase (experiment=value_crowdnav)
-    skip = {("train", "max_minutes"), ("train", "save_buffer"), ("algo", "save_buffer")}
+    skip = {("train", "max_minutes"), ("train", "budget_warm_start"), ("train", "save_buffer"), ("algo", "save_buffer")}
     if cfg["algo"]["name"] != "value":
         skip.add(("algo", "max_minutes"))
     for group in ("algo", "encoder", "env", "train"):

@@ -273,6 +273,7 @@ class TrainConfig:
     save_buffer: bool = True  # the replay buffer with each checkpoint
     stats_window: int = bounded(200, ge=1)  # episodes
     max_minutes: float | None = bounded(None, gt=0)
+    budget_warm_start: bool = False  # max_minutes counts the warm start too
     probe_every: int = bounded(28672, ge=1)  # frames
     probe_scene: str = "students003"
     probe_episodes: int = bounded(50, ge=1)

@@ -229,8 +229,10 @@ def _loop(cfg, out_dir, env, algo, logger, state, start: dict, progress, probe) 
     """The warm start (a fresh run's, if any) and the collect-learn-log-checkpoint loop from ``start``."""
     t, actor, ckpt_path = cfg.train, algo.actor, out_dir / "checkpoint.pt"
     frames, window, last_probe, restored = start["frames"], start["window"], start["last_probe"], start["restored"]
+    warm_s = 0.0  # the warm start's wall time, counted in max_minutes with train.budget_warm_start
     if state is None and t.get("pretrain"):
-        warm_start(cfg, env, algo, logger, print if progress else None)
+        logs = warm_start(cfg, env, algo, logger, print if progress else None)
+        warm_s = logs["pretrain_collect_s"] + logs["pretrain_fit_s"] if t.get("budget_warm_start") else 0.0
     remaining = t.total_frames - frames
     if remaining <= 0:
         return {"frames": frames, "updates": algo.updates}
@@ -262,7 +264,7 @@ def _loop(cfg, out_dir, env, algo, logger, state, start: dict, progress, probe) 
     # a resumed run refills warm-up frames too
     eta = DurationEstimate(remaining, algo.expected_updates(remaining), bar.write)
     last_ckpt, start = frames, time.time()
-    elapsed0 = float(state["wall_time_s"]) if state is not None else 0.0
+    elapsed0 = float(state["wall_time_s"]) if state is not None else warm_s
     stats: dict = {}
     try:
         for batch in collector:
