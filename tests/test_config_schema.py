@@ -53,7 +53,7 @@ PARTS = [f"{kind}:{o}" for kind, group in (("exp", "experiment"), ("env", "env")
 RADIUS_ENCODERS = ('gat', 'gatedgcn', 'gcn')  # the encoders with an edge radius (encoder.radius2)
 # they set algo.replay or algo.actor_base
 OFF_POLICY_EXPERIMENTS = ("paper", "leaderboard", "baselines", "crowdnav", "crowdnav_distill", "reactive", "warmstart",
-                          "leaderboard_long", "selfplay_warmstart")
+                          "leaderboard_long", "selfplay_warmstart", "selfplay_residual")
 
 
 def _algo_of(method: str) -> str:
@@ -90,7 +90,7 @@ def test_every_shipped_config_combination_validates_and_every_key_has_a_schema_f
                 with pytest.raises(ConfigError, match=r"^algo\.\w+: algo='\w+' has no such key"):
                     validate(cfg)
                 continue
-            if any(f"experiment={e}" in overrides for e in ("selfplay", "selfplay_warmstart")) and env != "selfplay":
+            if any(f"experiment={e}" in overrides for e in ("selfplay", "selfplay_warmstart", "selfplay_residual")) and env != "selfplay":
                 # a self-play recipe's env keys (mixed crossings, agent counts) are env=selfplay's alone
                 try:
                     validate(cfg)

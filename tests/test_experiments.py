@@ -23,6 +23,7 @@ TRAINING = ("algo", "encoder", "env", "train")  # what decides the trained weigh
 def training_config(cfg: dict) -> dict:
     out = {g: dict(cfg[g]) for g in TRAINING}
     out["train"].pop("max_minutes", None)  # a wall-time cap, not a training setting
+    out["train"].pop("budget_warm_start", None)  # what the cap counts
     out["train"].pop("save_buffer", None)  # what a checkpoint holds, not how the run trains
     out["env"].pop("orca_backend", None)  # which ORCA solver computes the crowd (the same numbers), not what
     if out["algo"].get("thin") == 0.0:  # algo=value's default, absent from checkpoints made before the option
@@ -33,6 +34,8 @@ def training_config(cfg: dict) -> dict:
         out["env"].pop("sfm_backend")  # (numba's social force is not torch's bit for bit: kept when set)
     if out["encoder"].get("robot_radius2", 0) is None:  # the default, absent from checkpoints made before the option
         out["encoder"].pop("robot_radius2")
+    if cfg["algo"].get("actor_base") == "orca" or cfg["train"].get("pretrain") == "orca":
+        out["orca"] = dict(cfg["orca"])  # the residual's base and the demonstrator: their ORCA trains the weights too
     return {**out, "seed": cfg["seed"]}
 
 

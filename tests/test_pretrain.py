@@ -146,6 +146,22 @@ def test_cli_run_with_warm_start_then_resume(tmp_path):
     assert len(read_log(tmp_path, "pretrain_heldout_action_mse")) == 1  # a resumed run never pretrains again
 
 
+def test_a_budget_that_counts_the_warm_start_starts_the_clock_at_its_end(tmp_path):
+    """train.budget_warm_start: max_minutes counts the demonstrations and their fit (experiment=selfplay_residual's
+    30 minutes per seed), so the loop's first wall time already holds them; a budget they used up stops the run
+    after its first batch, with a checkpoint."""
+    from crowdbench.algos.train import train
+
+    base = [*SMALL["td3"], *TINY, "train.pretrain=orca", "train.pretrain_frames=128", "train.pretrain_epochs=1",
+            "train.total_frames=1024"]
+    assert compose(base).train.budget_warm_start is False
+    train(compose([*base, "train.budget_warm_start=true", "train.max_minutes=1e-6"]), tmp_path, progress=False)
+    warm = read_log(tmp_path, "pretrain_collect_s")[0][1] + read_log(tmp_path, "pretrain_fit_s")[0][1]
+    [(step, wall)] = read_log(tmp_path, "wall_time_s")
+    state = load_checkpoint(tmp_path / "checkpoint.pt")
+    assert step == state["frames"] == 64 and wall >= warm > 0 and state["wall_time_s"] >= warm
+
+
 def test_bad_pretrain_is_a_one_line_error(tmp_path, capsys):
     assert main(["run", "train.pretrain=foo", f"out={tmp_path / 'run'}"]) == 2
     err = capsys.readouterr().err

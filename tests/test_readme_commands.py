@@ -103,6 +103,10 @@ INVOCATIONS: dict[str, list[list[str]]] = {
     "crowdbench run experiment=selfplay_warmstart":  # 4 agents, 8 demonstrated steps, 64 frames, evaluated on 4
         [["run", "experiment=selfplay_warmstart", "env.n_agents=4", *SELFPLAY, "env.eval_n_agents=[4]",
           "train.pretrain_frames=8", "train.pretrain_epochs=1", "train.pretrain_bc_updates=4", "out={tmp}/sp_ws"]],
+    "crowdbench run experiment=selfplay_residual seed=S cpus=1":  # 4 agents, 8 demonstrated steps, 64 frames
+        [["run", "experiment=selfplay_residual", "seed=1", "cpus=1", "env.n_agents=4", *SELFPLAY,
+          "env.eval_n_agents=[4]", "train.pretrain=orca", "train.pretrain_frames=8", "train.pretrain_epochs=1",
+          "train.pretrain_bc_updates=4", "out={tmp}/sp_res"]],
     "crowdbench run env=selfplay algo=td3 encoder=gatedgcn":
         [["run", "env=selfplay", "algo=td3", "encoder=gatedgcn", "env.n_agents=4", *SELFPLAY, "out={selfplay}"]],
     "crowdbench run env=selfplay env.n_agents=16 env.scenario=square env.background=students001":
