@@ -122,6 +122,8 @@ INVOCATIONS: dict[str, list[list[str]]] = {
     "env.robot_visible=true":
         [["eval", "env=crowdnav", "policy=straight", "env.eval_settings=[circle_n5,circle_n20,square_n5]",
           "env.humans=sfm", "env.robot_visible=true", "env.eval_episodes=2"]],
+    "crowdbench run experiment=crowdnav_residual seed=S cpus=1":
+        [["run", "experiment=crowdnav_residual", "seed=1", "cpus=1", *RUN, "env.eval_episodes=2"]],
     "crowdbench run env=crowdnav algo=value":
         [["run", "env=crowdnav", "algo=value", "algo.batch=4", "algo.il_episodes=4", "algo.il_steps=3",
           "algo.episodes=4", "algo.train_batches=1", "algo.batch_size=8", "algo.val_every=0", "env.time_limit=20",
