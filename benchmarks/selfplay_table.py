@@ -34,23 +34,30 @@ def short(label: str) -> str:
     return label.removeprefix(PREFIX).removesuffix(")") if label.startswith(PREFIX) else label
 
 
+def orcas(rows: dict) -> list[str]:
+    """The ORCA baselines: the protocol's ``ORCA`` first, then its variants (``ORCA (margin 0.3 m, ...)``)."""
+    return ["ORCA", *sorted(label for label in rows if label.startswith("ORCA ("))]
+
+
 def selfplay_table(text: str) -> list[str]:
     tables = {s: track_rows(text, track_name(s)) for s, _ in SETTINGS}
     labels = sorted({label for rows in tables.values() for label in learned(rows)})
-    head = ["track", "success: ORCA", *(f"success: {short(label)}" for label in labels), "best learned minus ORCA",
-            "dangers: ORCA", *(f"dangers: {short(label)}" for label in labels)]
+    bases = sorted({b for rows in tables.values() for b in orcas(rows)}, key=lambda b: (b != "ORCA", b))
+    head = ["track", *(f"success: {b}" for b in bases), *(f"success: {short(label)}" for label in labels),
+            *(f"best learned minus {b}" for b in bases),
+            *(f"dangers: {b}" for b in bases), *(f"dangers: {short(label)}" for label in labels)]
     caption = ("Success per agent and agent-agent danger steps per agent; learned: MP-GatedGCN-RL self-play, "
                "the mean over seeds [95% interval].")
     out = [caption, "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for setting, _ in SETTINGS:
         rows = tables[setting]
-        orca = rows["ORCA"]
+        base = [rows.get(b) for b in bases]
         got = [rows.get(label) for label in labels]
         best = max((success(r) for r in got if r), default=None)
-        diff = f"{best - success(orca):+.3f}" if best is not None else "—"
-        cells = [f"`{track_name(setting)}`", orca["success"],
-                 *(f"{r['success']}, {r['seeds']} seed{'s' * (r['seeds'] != '1')}" if r else "—" for r in got), diff,
-                 orca["agent dangers"], *(r["agent dangers"] if r else "—" for r in got)]
+        diffs = [f"{best - success(r):+.3f}" if best is not None and r else "—" for r in base]
+        cells = [f"`{track_name(setting)}`", *(r["success"] if r else "—" for r in base),
+                 *(f"{r['success']}, {r['seeds']} seed{'s' * (r['seeds'] != '1')}" if r else "—" for r in got), *diffs,
+                 *(r["agent dangers"] if r else "—" for r in base), *(r["agent dangers"] if r else "—" for r in got)]
         out.append("| " + " | ".join(cells) + " |")
     return out
 

@@ -408,6 +408,28 @@ def test_docs_blocks_are_rendered_from_the_committed_results():
     assert "0.500" in row
 
 
+def test_an_edit_made_while_the_leaderboard_runs_is_kept(tmp_path, monkeypatch):
+    """The README's prose edited after the run started (here: right after its blocks were located) survives
+    the run's rewrite of the results block: the block is replaced in the file as it is when written."""
+    from crowdbench.leaderboard import board
+
+    root = tmp_path / "lb"
+    add_straight(root)
+    readme = tmp_path / "README.md"
+    readme.write_text("# Title\n\n<!-- generated:results:start -->\nold\n<!-- generated:results:end -->\n\nmore\n")
+    located = board._targets
+
+    def located_then_edited(*args, **kwargs):
+        out = located(*args, **kwargs)
+        readme.write_text(readme.read_text().replace("more", "an edit made during the run"))
+        return out
+
+    monkeypatch.setattr(board, "_targets", located_then_edited)
+    assert run(root, readme=readme, log=lambda m: None, **FAST) == 0
+    text = readme.read_text()
+    assert text.endswith("\n\nan edit made during the run\n") and "old" not in text and "| Straight to goal | 1 |" in text
+
+
 @pytest.mark.slow
 def test_readme_block_written_checked_and_never_touched_by_a_scratch_root(tmp_path, monkeypatch, capsys):
     root = tmp_path / "lb"

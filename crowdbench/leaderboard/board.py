@@ -296,7 +296,10 @@ def _run(root: Path, only: list[str] | None = None, check: bool = False, force: 
         if v1:
             v1_plot(v1, scenes, root / "leaderboard.png", colours)
         wrote += [str(root / "README.md"), str(root / "leaderboard.png")]
-        for path, text in targets:
+        for path, _ in targets:
+            # read again: the file may have been edited during the run (minutes to hours), and only its
+            # generated blocks are the run's to replace
+            text = path.read_text() if path.is_file() else ""
             new = render.regenerate(text, v1, scenes, episodes)
             if new != text:
                 write_atomic(path, new)
