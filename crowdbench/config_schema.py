@@ -280,6 +280,7 @@ class TrainConfig:
     logger: str = bounded("csv", choices=("csv", "tensorboard", "wandb"))  # crowdbench/algos/loggers.py
     progress_reward: float = 0.1
     human_dropout: float = bounded(0.0, ge=0, le=1)  # a probability
+    human_thinning: float = bounded(0.0, ge=0, le=1)  # a probability (env=replay's recorded humans)
     # the training scene replayed at each of these speeds (1 = as recorded; env=replay; data/scenes.py playback_scene)
     playback_speeds: list[float] = field(default_factory=lambda: [1.0], metadata={"min_len": 1, "gt": 0, "le": 4})
     # imitation warm start before RL (crowdbench/algos/pretrain.py); a resumed run never repeats it

@@ -4,12 +4,13 @@ import math
 
 import pytest
 import torch
+from tensordict import TensorDict
 from torchrl.envs import TransformedEnv
 from torchrl.envs.utils import check_env_specs
 from worlds import replay_sim, reset_v1
 
 from crowdbench.envs.factory import replay_env
-from crowdbench.envs.transforms import HumanDropout, ProgressReward
+from crowdbench.envs.transforms import HumanDropout, HumanThinning, ProgressReward
 
 
 @pytest.mark.parametrize("batch", [1, 4])
@@ -106,3 +107,30 @@ def test_human_dropout_hides_humans_for_a_whole_episode():
     assert (hvalid & ~keep).any()  # ... but they are still in the world (they can be hit)
     with pytest.raises(ValueError, match="human_dropout"):
         HumanDropout(1.5, seed=0, n_slots=3, n_humans=3)
+
+
+def test_human_thinning_removes_humans_from_the_world_per_episode():
+    base = replay_env("students001", 64, seed=0)
+    env = TransformedEnv(base, HumanThinning(1.0, seed=0))
+    td = env.reset()
+    crowd = base.world.crowd
+    keep = crowd.keep.clone()
+    valid = base.world.scene.valid[crowd.t]
+    kept = (keep & valid).sum(1).float() / valid.sum(1).clamp_min(1)
+    assert 0.3 < kept.mean().item() < 0.7  # E[1 - u] = 0.5 for u ~ U(0, 1)
+    for _ in range(5):
+        _, _, hvalid = base.world.humans()
+        assert not (hvalid & ~keep).any()  # a removed human is not in the world (cannot be hit) ...
+        assert (hvalid & keep).any()
+        seen = td["agents", "observation", "humans_mask"][:, 0]
+        assert seen.any() and not (seen & ~keep).any()  # ... nor seen
+        td["agents", "action"] = torch.zeros(64, 1, 2)
+        td = env.step(td)["next"]
+    assert torch.equal(crowd.keep, keep)  # no env was reset: the same humans stay removed
+    reset = torch.zeros(64, 1, dtype=torch.bool)
+    reset[:3] = True
+    env.reset(TensorDict({"_reset": reset}, batch_size=[64]))
+    assert torch.equal(crowd.keep[3:], keep[3:])  # a partial reset redraws only the envs it starts anew
+    assert not torch.equal(crowd.keep[:3], keep[:3])
+    with pytest.raises(ValueError, match="human_thinning"):
+        HumanThinning(-0.1, seed=0)

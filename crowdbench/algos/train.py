@@ -198,6 +198,7 @@ def _train(cfg: DictConfig, out_dir: Path, resume: bool, progress: bool, probe) 
     # replay (one robot) or self-play (n agents, one shared-weight policy); progress shaping for training only
     # InitTracker: the OU noise restarts from zero in every new episode
     env = make_env(cfg, progress_reward=t.progress_reward, human_dropout=t.human_dropout,
+                   human_thinning=t.get("human_thinning", 0.0),
                    playback_speeds=t.get("playback_speeds", (1.0,)),
                    extra=(InitTracker(), RewardSum(in_keys=[(GROUP, "reward")], out_keys=[EPISODE_RETURN]),
                           *Algo.env_transforms(cfg)))

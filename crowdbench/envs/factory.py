@@ -152,21 +152,24 @@ def training_world(env_cfg, batch: int, playback_speeds=(1.0,)):
     return WORLDS[name].playback(env_cfg, sim_config(env_cfg), batch, speeds)
 
 
-def make_env(cfg, progress_reward: float = 0.0, human_dropout: float = 0.0, extra=(), playback_speeds=(1.0,)):
+def make_env(cfg, progress_reward: float = 0.0, human_dropout: float = 0.0, extra=(), playback_speeds=(1.0,),
+             human_thinning: float = 0.0):
     """The TorchRL env of ``cfg.env``, ``env.batch`` wide, seeded with ``cfg.seed``.
 
-    ``progress_reward`` (``train.progress_reward``) and ``human_dropout`` (``train.human_dropout``)
-    are training-only transforms (:mod:`crowdbench.envs.transforms`); ``extra`` transforms go after them.
+    ``progress_reward`` (``train.progress_reward``), ``human_dropout`` (``train.human_dropout``) and
+    ``human_thinning`` (``train.human_thinning``) are training-only transforms (:mod:`crowdbench.envs.transforms`); ``extra`` transforms go after them.
     ``playback_speeds`` (``train.playback_speeds``): :func:`training_world`.
     """
     from torchrl.envs import Compose, TransformedEnv
 
     from crowdbench.envs.torchrl_env import CrowdEnv
-    from crowdbench.envs.transforms import HumanDropout, ProgressReward
+    from crowdbench.envs.transforms import HumanDropout, HumanThinning, ProgressReward
 
     world, scenario = training_world(cfg.env, int(cfg.env.batch), playback_speeds)
     env = CrowdEnv(world, scenario, seed=cfg.seed)
     transforms = []
+    if human_thinning:
+        transforms.append(HumanThinning(human_thinning, cfg.seed))
     if human_dropout:
         transforms.append(HumanDropout(human_dropout, cfg.seed, world.M, world.Mh))
     if progress_reward:

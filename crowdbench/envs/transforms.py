@@ -1,4 +1,4 @@
-"""Training-only TorchRL transforms of the crowd env: progress shaping and human dropout.
+"""Training-only TorchRL transforms of the crowd env: progress shaping, human dropout and thinning.
 
 Evaluation never uses them: the evaluation loop runs the bare env, so the paper's reward and
 every human are what is reported.
@@ -90,6 +90,36 @@ class HumanDropout(Transform):
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         return self._hide(next_tensordict)
+
+
+class HumanThinning(Transform):
+    """Density randomisation of the world: each episode draws ``u ~ U(0, p)`` and removes each recorded
+    human with probability ``u`` for the whole episode: not seen, not hit, not in the danger term.
+
+    Unlike :class:`HumanDropout` (the observation only), what the policy sees is then the crowd it moves
+    in, so a residual on ORCA, whose base reads the observation, can still avoid everyone. The keep mask
+    is drawn before the base env's reset (the first observation already lacks the removed humans) and
+    only for the environments that start anew. Replay crowds only (``ReplayCrowd.keep``)."""
+
+    def __init__(self, p: float, seed: int):
+        super().__init__(in_keys=[], out_keys=[])
+        if not 0.0 <= p <= 1.0:
+            raise ValueError(f"train.human_thinning must be in [0, 1], got {p}")
+        self.p = float(p)
+        self.gen = torch.Generator().manual_seed(int(seed) + 104729)
+
+    def _reset_env_preprocess(self, tensordict: TensorDictBase | None) -> TensorDictBase | None:
+        crowd = self.parent.base_env.world.crowd
+        if not hasattr(crowd, "keep"):
+            raise ValueError("train.human_thinning needs recorded humans (env=replay with env.humans=replay)")
+        B, M = crowd.t.shape[0], crowd.M
+        mask = _reset_mask(tensordict, B)
+        drawn = density_keep(B, M, self.p, self.gen)
+        crowd.keep = drawn if crowd.keep is None else torch.where(mask.view(-1, 1), drawn, crowd.keep)
+        return super()._reset_env_preprocess(tensordict)
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        return tensordict_reset
 
 
 SCENE = (GROUP, "state", "scene")
