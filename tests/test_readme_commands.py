@@ -63,6 +63,7 @@ INVOCATIONS: dict[str, list[list[str]]] = {
     "crowdbench run ... algo.exploration=ou": [["run", *RUN, "algo.exploration=ou"]],
     "crowdbench run ... algo.critic_lookahead=0": [["run", *RUN, "algo.critic_lookahead=0"]],
     "crowdbench run ... train.human_dropout=0.8": [["run", *RUN, "train.human_dropout=0.8"]],
+    "crowdbench run ... train.human_thinning=0.5": [["run", *RUN, "train.human_thinning=0.5"]],
     "crowdbench run train=scratch algo.actor_base=none": [["run", *RUN, "train=scratch", "algo.actor_base=none"]],
     "crowdbench run ... train.playback_speeds=[1.0,2.0]": [["run", *RUN, "train.playback_speeds=[1.0,2.0]"]],
     "crowdbench run ... encoder=rgl encoder.similarity=embedded_gaussian":
