@@ -1,12 +1,16 @@
 """Self-play throughput: env-steps/s (and agent-steps/s) at n = 8 and 32 agents, B = 256.
 
 Usage: python benchmarks/bench_selfplay.py [--threads 2] [--seconds 3] [--batch 256]
-       python benchmarks/bench_selfplay.py --scale [--batch 64]   # 32, 64, 128 agents, every slot vs 16 nearest
+       python benchmarks/bench_selfplay.py --scale [--batch 64]   # 32-256 agents, every slot vs 16 nearest
 
 ``--scale``: each configuration in its own process, reporting env-steps/s of the TorchRL env with the shared
-gatedgcn actor and the process's peak resident memory; circle crossing on a circle of radius n / 8 m (the
-agents must fit), ``env.obs_slots`` = 0 (every agent and human is a slot: the view grows as n^2) or 16 (the
-16 nearest bodies: linear in n).
+gatedgcn actor, the process's peak resident memory, that peak above the baseline (a process that imports
+torch and crowdbench and builds nothing), the rate and peak of the env alone (another process stepping it
+with a fixed action, no actor), and the most tensor memory one env step (step and observation, after a
+reset) and one decision of the actor for every agent each hold at once (torch.profiler's allocation events,
+without the allocator's cached memory); circle crossing on a circle of radius n / 8 m (the agents must fit),
+``env.obs_slots`` = 0 (every agent and human is a slot: the view grows as n^2) or 16 (the 16 nearest bodies:
+linear in n).
 
 An env-step advances one environment (all its n agents) by one step; agent-steps = env-steps x n.
 Every figure includes one ``observe`` per ``step`` (each agent's view of the other agents and
@@ -17,6 +21,8 @@ resets included); "+ actor" adds the shared-weight MP-GatedGCN (D = 32) deciding
 from __future__ import annotations
 
 import argparse
+import json
+import os
 import resource
 import subprocess
 import sys
@@ -56,8 +62,8 @@ def core_rate(cfg: SelfPlayConfig, batch: int, seconds: float) -> float:
     return n * batch / dt
 
 
-def torchrl_rate(cfg: SelfPlayConfig, batch: int, seconds: float, actor=None) -> float:
-    env = selfplay_env(batch, cfg, seed=0)
+def torchrl_rate(cfg: SelfPlayConfig, batch: int, seconds: float, actor=None, env=None) -> float:
+    env = env or selfplay_env(batch, cfg, seed=0)
     state = {"td": env.reset()}
     fixed = torch.full((batch, cfg.n_agents, 2), 0.7)
 
@@ -78,22 +84,65 @@ def gatedgcn():
     return build_actor("td3", {"name": "gatedgcn", "dim": 32, "layers": 2, "k": 8}, 1.0)
 
 
-def one_scale(n: int, slots: int, batch: int, seconds: float) -> None:
+def peak_rss() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # MB (Linux reports kB)
+
+
+def held(fn) -> float:
+    """MB: the most tensor memory ``fn()`` allocates and holds at once (torch.profiler's memory events)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    err, null = os.dup(2), os.open(os.devnull, os.O_WRONLY)  # kineto logs its start and stop on stderr
+    try:
+        os.dup2(null, 2)
+        with torch.no_grad(), profile(activities=[ProfilerActivity.CPU], profile_memory=True) as prof:
+            fn()
+    finally:
+        os.dup2(err, 2)
+        os.close(err), os.close(null)
+    events = sorted((e for e in prof.profiler.kineto_results.events() if e.name() == "[memory]"),
+                    key=lambda e: e.start_ns())
+    live = top = 0
+    for e in events:
+        live += e.nbytes()
+        top = max(top, live)
+    return top / 2**20
+
+
+def one_scale(n: int, slots: int, batch: int, seconds: float, with_actor: bool) -> None:
+    """One configuration in this process: its rate, peak RSS and (with the actor) the tensors one env step
+    and one decision of the actor hold, as JSON for :func:`scale`."""
     cfg = SelfPlayConfig(n_agents=n, circle_radius=max(4.0, n / 8), obs_slots=slots)
-    r = torchrl_rate(cfg, batch, seconds, gatedgcn())
-    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    print(f"| {n} | {slots or 'all (' + str(n - 1) + ')'} | {r:,.0f} | {r * n:,.0f} | {rss:,.0f} |", flush=True)
+    env, actor = selfplay_env(batch, cfg, seed=0), gatedgcn() if with_actor else None
+    out = {"rate": torchrl_rate(cfg, batch, seconds, actor, env), "rss": peak_rss()}
+    if actor is not None:
+        with torch.no_grad():
+            td = env.reset()
+            out["actor"] = held(lambda: actor(td))  # (writes the action the step takes into td)
+            out["step"] = held(lambda: env.step_and_maybe_reset(td))  # from the state after a reset
+    print(json.dumps(out))
 
 
 def scale(args) -> None:
-    print(f"torch {torch.__version__}, threads {args.threads}, B = {args.batch}, circle crossing, TorchRL env + "
-          "shared gatedgcn (D=32) actor")
-    print("| n agents | slots per agent | env-steps/s | agent-steps/s | peak RSS (MB) |")
-    print("|---|---|---|---|---|")
-    for n in (32, 64, 128):
+    def child(*one: str) -> dict:
+        cmd = [sys.executable, __file__, "--batch", str(args.batch), "--threads", str(args.threads),
+               "--seconds", str(args.seconds), "--one", ",".join(map(str, one))]
+        return json.loads(subprocess.run(cmd, check=True, stdout=subprocess.PIPE, text=True).stdout)
+
+    base = child("base")["rss"]
+    print(f"torch {torch.__version__}, threads {args.threads}, B = {args.batch}, circle crossing, "
+          f"TorchRL env + shared gatedgcn (D=32) actor; baseline (imports only) {base:,.0f} MB")
+    print("| n agents | slots per agent | env-steps/s | agent-steps/s | env alone: env-steps/s "
+          "| peak RSS (MB) | above baseline (MB) | env alone: above baseline (MB) | env step tensors (MB) "
+          "| actor tensors (MB) |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for n in (32, 64, 128, 256):
         for slots in (0, 16):
-            subprocess.run([sys.executable, __file__, "--one", f"{n},{slots}", "--batch", str(args.batch),
-                            "--threads", str(args.threads), "--seconds", str(args.seconds)], check=True)
+            full, alone = child(n, slots, 1), child(n, slots, 0)
+            r, rss, view = full["rate"], full["rss"], slots or f"all ({n - 1})"
+            print(f"| {n} | {view} | {r:,.0f} | {r * n:,.0f} | {alone['rate']:,.0f} | {rss:,.0f} "
+                  f"| {rss - base:,.0f} | {alone['rss'] - base:,.0f} | {full['step']:,.1f} "
+                  f"| {full['actor']:,.0f} |", flush=True)
 
 
 def main() -> None:
@@ -105,9 +154,11 @@ def main() -> None:
     ap.add_argument("--one", default="", help=argparse.SUPPRESS)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
+    if args.one == "base":  # the baseline: imports only
+        return print(json.dumps({"rss": peak_rss()}))
     if args.one:
-        n, slots = map(int, args.one.split(","))
-        return one_scale(n, slots, args.batch, args.seconds)
+        n, slots, with_actor = map(int, args.one.split(","))
+        return one_scale(n, slots, args.batch, args.seconds, bool(with_actor))
     if args.scale:
         return scale(args)
     B = args.batch

@@ -96,7 +96,7 @@ class CrowdEnv(EnvBase):
             # an agent-level "_reset" only (some agents done, no environment done): nothing to reset
             return self._last.clone()
         self.world.reset(mask, self._draw(int(mask.sum())))
-        agent_clear = self.world.agent_clearance().amin(-1) if self.world.interact else None
+        agent_clear = self.world.nearest_agent() if self.world.interact else None
         observation = None
         if self._last is not None and not mask.all():
             # only the reset environments' views change (the others' are those of the last step): new

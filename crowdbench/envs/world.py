@@ -26,6 +26,13 @@ With ``interact=True`` (self-play) agents are bodies for each other too:
   so a shared-weight graph policy sees every other agent as a neighbour node.
 
 Without it (the robot protocols) each robot observes the ``M`` humans only.
+
+Memory: the all-pairs tests (agent-agent and agent-human clearances, each agent's view before its
+``obs_slots`` nearest are kept) run over blocks of agent rows, at most ``PAIRS`` pairs a block
+(:meth:`World._blocks`), so their intermediates do not grow with ``A`` or ``B``: with ``obs_slots`` a step
+holds ``O(B A)`` tensors, plus the ``[B, A, A]`` booleans of ``pair_collision`` (without it the view itself is
+``[B, A, A + M, 4]``). A block's values are the same bits as the same rows of the all-pairs tensors (the same
+elementwise operations, the same reductions and nearest-slot selection over each row).
 """
 
 from __future__ import annotations
@@ -46,6 +53,9 @@ from crowdbench.envs.humans import Agents
 from crowdbench.kinematics import advance, clip_speed, heading_to, to_local, to_world
 
 DONE_AGENTS = ("vanish", "obstacle")
+# pairs (over the whole batch) in one block of the all-pairs tests: a block's float tensors are 256 kB, as
+# fast as or faster than larger blocks on CPU (B = 64: 1024 pairs per environment, 32 agents in one block)
+PAIRS = 65536
 
 
 class World:
@@ -120,32 +130,61 @@ class World:
         """The agents as the crowd model sees them (its whole view of the world, crowdbench/envs/humans)."""
         return Agents(self.pos, self.vel, self.present())
 
-    def _pair_mask(self, present: torch.Tensor) -> torch.Tensor:
-        """``[B, A, A]``: agent ``j`` is a body agent ``i`` can meet (not itself)."""
-        return present.unsqueeze(1) & ~self.eye
+    def _pair_mask(self, present: torch.Tensor, rows: slice = slice(None)) -> torch.Tensor:
+        """``[B, R, A]``: agent ``j`` is a body agent ``i`` (of ``rows``) can meet (not itself)."""
+        return present.unsqueeze(1) & ~self.eye[rows]
 
     def humans(self):
         """Humans now: position, velocity ``[B, M, 2]``, present ``[B, M]``."""
         return self.crowd.observe()
 
-    def human_clearance(self, pos: torch.Tensor | None = None) -> torch.Tensor:
-        """Per-human clearance ``[B, A, M]`` of agents at ``pos`` (default: now); ``_FAR`` on padding."""
-        pos = self.pos if pos is None else pos
+    def human_clearance(self, pos: torch.Tensor | None = None, rows: slice = slice(None)) -> torch.Tensor:
+        """Per-human clearance ``[B, A, M]`` of agents at ``pos`` (default: now); ``_FAR`` on padding;
+        ``rows``: those agents only."""
+        pos = (self.pos if pos is None else pos)[:, rows]
         hpos, _, hvalid = self.humans()
         gap = (hpos.unsqueeze(1) - pos.unsqueeze(2)).norm(dim=-1) - self.radius_sum
         return gap.masked_fill(~hvalid.unsqueeze(1), _FAR)
 
-    def agent_clearance(self) -> torch.Tensor:
-        """``[B, A, A]`` surface gaps between agents (``_FAR`` for itself and absent agents)."""
-        gap = (self.pos.unsqueeze(1) - self.pos.unsqueeze(2)).norm(dim=-1) - self.r_aa
-        return gap.masked_fill(~self._pair_mask(self.present()), _FAR)
+    def agent_clearance(self, rows: slice = slice(None)) -> torch.Tensor:
+        """``[B, A, A]`` surface gaps between agents (``_FAR`` for itself and absent agents); ``rows``: the
+        gaps of those agents only, ``[B, R, A]``."""
+        gap = (self.pos.unsqueeze(1) - self.pos[:, rows].unsqueeze(2)).norm(dim=-1) - self.r_aa
+        return gap.masked_fill(~self._pair_mask(self.present(), rows), _FAR)
+
+    def nearest_agent(self) -> torch.Tensor:
+        """``[B, A]``: ``agent_clearance().amin(-1)``, one block of rows at a time."""
+        return self._blocks(self.A, lambda r: (self.agent_clearance(r).amin(-1),))[0]
 
     def min_clearance(self) -> torch.Tensor:
         """Current clearance to the nearest body (human, or agent when agents interact), ``[B, A]``."""
-        gap = self.human_clearance()
-        if self.interact:
-            gap = torch.cat((self.agent_clearance(), gap), -1)
-        return gap.amin(-1) if gap.shape[-1] else torch.full((self.B, self.A), _FAR)
+        if not self.M_all:
+            return torch.full((self.B, self.A), _FAR)
+
+        def rows(r: slice):
+            gap = self.human_clearance(rows=r)
+            if self.interact:
+                gap = torch.cat((self.agent_clearance(r), gap), -1)
+            return (gap.amin(-1),)
+
+        return self._blocks(self.M_all, rows)[0]
+
+    def _blocks(self, width: int, fn, batch: int | None = None) -> tuple[torch.Tensor, ...]:
+        """``fn(rows)`` for blocks of agent rows of at most ``PAIRS`` pairs of ``width`` columns over
+        ``batch`` environments (default ``B``), its tensors (agents on dim 1) stitched together: only one
+        block's pair tensors are alive at a time."""
+        size = max(1, PAIRS // max((batch or self.B) * width, 1))
+        if size >= self.A:  # one block: fn's own tensors
+            return fn(slice(None))
+        out = None
+        for i in range(0, self.A, size):
+            r = slice(i, i + size)
+            part = fn(r)
+            if out is None:
+                out = tuple(p.new_empty(p.shape[0], self.A, *p.shape[2:]) for p in part)
+            for o, p in zip(out, part):
+                o[:, r] = p
+        return out
 
     def clip_action(self, action: torch.Tensor) -> torch.Tensor:
         return clip_speed(action, self.cfg.v_max)
@@ -171,26 +210,14 @@ class World:
 
         # humans move from h0 to h1 over the step (decided from the state at its start)
         h0, h1, hv1 = self.crowd.advance(env_active, self.agents())
-        swept_h = (segment_min_distance(h0.unsqueeze(1) - self.pos.unsqueeze(2), h1.unsqueeze(1) - new_pos.unsqueeze(2))
-                   - self.radius_sum).masked_fill(~hv1.unsqueeze(1), _FAR)
-        end_h = ((h1.unsqueeze(1) - new_pos.unsqueeze(2)).norm(dim=-1) - self.radius_sum).masked_fill(
-            ~hv1.unsqueeze(1), _FAR)
-        far = torch.full((self.B, self.A), _FAR)
-        swept_h = swept_h.amin(-1) if self.Mh else far
-        end_h = end_h.amin(-1) if self.Mh else far
+        swept_h, end_h = self._human_gaps(h0, h1, hv1, new_pos)
         extra = {"human_clearance": end_h}
         hit = swept_h < 0
         end, swept = end_h, swept_h
         if self.interact:  # agents: both bodies move linearly (a done obstacle does not move)
-            pair = self._pair_mask(self.present()) & active.unsqueeze(-1)  # [B, i, j]: i can hit j
-            rel0 = self.pos.unsqueeze(1) - self.pos.unsqueeze(2)  # [B, i, j, 2] = p_j - p_i
-            rel1 = new_pos.unsqueeze(1) - new_pos.unsqueeze(2)
-            swept_aa = (segment_min_distance(rel0, rel1) - self.r_aa).masked_fill(~pair, _FAR)
-            end_aa = (rel1.norm(dim=-1) - self.r_aa).masked_fill(~pair, _FAR)
-            pair_hit = swept_aa < 0
-            pair_hit = pair_hit | pair_hit.transpose(1, 2) & active.unsqueeze(-1)  # both agents of a running pair
-            agent_end = end_aa.amin(-1) if self.A > 1 else far
-            swept_a = swept_aa.amin(-1) if self.A > 1 else agent_end
+            hit_aa, agent_end, swept_a = self._agent_gaps(new_pos, active)
+            pair_hit = hit_aa.transpose(1, 2) & active.unsqueeze(-1)  # both agents of a running pair
+            pair_hit |= hit_aa
             end, swept = torch.minimum(agent_end, end_h), torch.minimum(swept_a, swept_h)
             hit = pair_hit.any(-1) | hit
             extra.update(pair_collision=pair_hit, agent_clearance=agent_end)
@@ -208,6 +235,37 @@ class World:
         return StepInfo(reward=reward, terminated=success | collision, truncated=timeout, outcome=outcome,
                         clearance=end, swept_clearance=swept, active=active, extra=extra)
 
+    def _human_gaps(self, h0, h1, hv1, new_pos) -> tuple[torch.Tensor, torch.Tensor]:
+        """Swept and end-of-step clearance ``[B, A]`` of every agent to its nearest human (``_FAR``: none)."""
+        if not self.Mh:
+            far = torch.full((self.B, self.A), _FAR)
+            return far, far
+        gone = ~hv1.unsqueeze(1)
+
+        def rows(r: slice):
+            p0, p1 = self.pos[:, r].unsqueeze(2), new_pos[:, r].unsqueeze(2)
+            swept = segment_min_distance(h0.unsqueeze(1) - p0, h1.unsqueeze(1) - p1) - self.radius_sum
+            swept = swept.masked_fill(gone, _FAR)
+            end = ((h1.unsqueeze(1) - p1).norm(dim=-1) - self.radius_sum).masked_fill(gone, _FAR)
+            return swept.amin(-1), end.amin(-1)
+
+        return self._blocks(self.Mh, rows)
+
+    def _agent_gaps(self, new_pos, active) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Agent-agent tests of a step: ``hit`` ``[B, i, j]`` (running ``i`` sweeps into present ``j``), and
+        each agent's end-of-step and swept clearance ``[B, A]`` to its nearest agent (``_FAR``: none)."""
+        present = self.present()
+
+        def rows(r: slice):
+            pair = self._pair_mask(present, r) & active[:, r].unsqueeze(-1)  # [B, i, j]: i can hit j
+            rel0 = self.pos.unsqueeze(1) - self.pos[:, r].unsqueeze(2)  # [B, i, j, 2] = p_j - p_i
+            rel1 = new_pos.unsqueeze(1) - new_pos[:, r].unsqueeze(2)
+            swept = (segment_min_distance(rel0, rel1) - self.r_aa).masked_fill(~pair, _FAR)
+            end = (rel1.norm(dim=-1) - self.r_aa).masked_fill(~pair, _FAR)
+            return swept < 0, end.amin(-1), swept.amin(-1)
+
+        return self._blocks(self.A, rows)
+
     # ------------------------------------------------------------------ observation
     def observe(self, frame: str | None = None, rows: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         """Each agent's view in its own frame (SPEC section 3; layout in :mod:`crowdbench.envs.policy`).
@@ -220,37 +278,49 @@ class World:
         value is computed per environment, so they are the same bits as the full batch's rows.
         """
         frame = frame or self.cfg.frame
-        A, S = self.A, self.M_all
         pick = (lambda x: x) if rows is None else (lambda x: x[rows])
         opos, ovel, ovalid = (pick(x) for x in self.humans())
         pos, vel, goal, heading = pick(self.pos), pick(self.vel), pick(self.goal), pick(self.heading)
-        B = pos.shape[0]
         if self.interact:
             opos, ovel = torch.cat((pos, opos), 1), torch.cat((vel, ovel), 1)
             ovalid = torch.cat((pick(self.present()), ovalid), 1)
-        rel = opos.unsqueeze(1) - pos.unsqueeze(2)  # [B, A, S, 2]
-        seen = ovalid.unsqueeze(1) & ((rel * rel).sum(-1) <= self.cfg.sensing_range**2)
-        if self.interact:
-            seen[:, :, :A] &= ~self.eye
-        if frame == "world":
-            rel = opos.unsqueeze(1).expand(B, A, S, 2)
-        hvel = ovel.unsqueeze(1).expand(B, A, S, 2)
         own = torch.stack((vel, goal - pos if frame != "world" else goal), -2)  # [B, A, 2, 2]
-        if frame == "rotate":  # elementwise: the same bits whatever the tensor it is applied to
-            rel, hvel, own = to_local(rel, heading), to_local(hvel, heading), to_local(own, heading)
-        humans = torch.cat((rel, hvel), -1) * seen.unsqueeze(-1)
+        if frame == "rotate":
+            own = to_local(own, heading)
         origin = pos if frame == "world" else torch.zeros_like(pos)
-        robot = torch.cat((origin, own.reshape(B, A, 4)), -1)
-        if self.M < self.M_all:
-            humans, seen = self._nearest(humans, seen, frame, rel if frame != "world" else rel - pos.unsqueeze(2))
+        robot = torch.cat((origin, own.flatten(-2)), -1)
+        view = lambda r: self._view(frame, (opos, ovel, ovalid), pos[:, r], heading[:, r], r)
+        humans, seen = self._blocks(self.M_all, view, len(pos))
         return {"robot": robot, "humans": humans, "humans_mask": seen}
 
-    def _nearest(self, humans, seen, frame: str, rel):
-        """The ``M`` nearest seen slots of every agent's view, nearest first (unseen ones last, zero)."""
+    def _view(self, frame: str, others, pos, heading, r: slice) -> tuple[torch.Tensor, torch.Tensor]:
+        """The slots ``[B, R, M, 4]`` and mask ``[B, R, M]`` of the agents of rows ``r`` (at ``pos``, facing
+        ``heading``, ``[B, R, 2]``) on the ``S`` bodies ``others`` (position, velocity, present)."""
+        opos, ovel, ovalid = others
+        rel = opos.unsqueeze(1) - pos.unsqueeze(2)  # [B, R, S, 2]
+        seen = ovalid.unsqueeze(1) & ((rel * rel).sum(-1) <= self.cfg.sensing_range**2)
+        if self.interact:
+            seen[:, :, : self.A] &= ~self.eye[r]
+        if frame == "rotate":  # elementwise: the same bits whatever the tensor it is applied to
+            rel = to_local(rel, heading)
+        near = rel  # slots are ranked by the relative position in the view's axes (rotated or not)
+        if frame == "world":
+            rel = opos.unsqueeze(1).expand_as(near)
+        vel = ovel.unsqueeze(1).expand_as(near)
+        if self.M < self.M_all:  # only the kept slots' features are built
+            idx, seen = self._nearest(near, seen)
+            idx = idx.unsqueeze(-1).expand(*idx.shape, 2)
+            rel, vel = rel.gather(-2, idx), vel.gather(-2, idx)
+        if frame == "rotate":
+            vel = to_local(vel, heading)
+        return torch.cat((rel, vel), -1) * seen.unsqueeze(-1), seen
+
+    def _nearest(self, rel, seen) -> tuple[torch.Tensor, torch.Tensor]:
+        """Indices ``[B, R, M]`` of the ``M`` nearest seen slots (``rel`` ``[B, R, S, 2]``), nearest first
+        (unseen ones last), and whether each is seen."""
         d2 = (rel * rel).sum(-1).masked_fill(~seen, float("inf"))
-        idx = d2.topk(self.M, dim=-1, largest=False, sorted=True).indices  # [B, A, M]
-        keep = seen.gather(-1, idx)
-        return humans.gather(-2, idx.unsqueeze(-1).expand(*idx.shape, 4)) * keep.unsqueeze(-1), keep
+        idx = d2.topk(self.M, dim=-1, largest=False, sorted=True).indices
+        return idx, seen.gather(-1, idx)
 
     def scene_view(self) -> dict[str, torch.Tensor]:
         """Each agent's view of the whole scene, for a centralised critic (``algo=mappo``): every body,
