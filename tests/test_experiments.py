@@ -28,6 +28,8 @@ def training_config(cfg: dict) -> dict:
     out["env"].pop("orca_backend", None)  # which ORCA solver computes the crowd (the same numbers), not what
     if out["algo"].get("thin") == 0.0:  # algo=value's default, absent from checkpoints made before the option
         out["algo"].pop("thin")
+    if out["train"].get("human_thinning") == 0.0:  # the default, absent from checkpoints made before the option
+        out["train"].pop("human_thinning")
     if out["train"].get("playback_speeds") in ([1.0], None):  # as recorded: absent from checkpoints made before the option
         out["train"].pop("playback_speeds", None)
     if out["env"].get("sfm_backend") == "torch":  # the default, absent from checkpoints made before the option
