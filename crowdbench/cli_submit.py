@@ -162,8 +162,9 @@ def existing(root: Path) -> tuple[set[str], set[str]]:
 
 
 def command_overrides(run: Path) -> list[str] | None:
-    """The command-line overrides a finished run recorded in its ``results.json`` (``out=`` and ``resume=``
-    dropped: where it ran, not how), or None."""
+    """The command-line overrides a finished run recorded in its ``results.json``, or None. Dropped: where it
+    ran (``out=``, ``resume=``) and what it did after training (``eval.*``, ``viz.*``) or logged with
+    (``train.logger=``): not how it trained, and seeds of one row must record the same training."""
     import json
 
     try:
@@ -172,7 +173,7 @@ def command_overrides(run: Path) -> list[str] | None:
         return None
     if not isinstance(got, list) or not all(isinstance(o, str) for o in got):
         return None
-    return [o for o in got if not o.startswith(("out=", "resume="))]
+    return [o for o in got if not o.startswith(("out=", "resume=", "eval.", "viz.", "train.logger="))]
 
 
 def training_overrides(cfg: dict) -> list[str]:

@@ -59,3 +59,17 @@ def test_the_readme_publishes_no_text_a_worker_wrote(tmp_path):
     assert "leak/submission.yaml: field 'encoder_import': refused by its worker while loading (details in the harness log)" \
         in " ".join(rejected.split())
     assert "exited with code 3 while loading; its last words are in the harness log" in rejected
+
+
+def test_a_runs_recorded_overrides_keep_how_it_trained_only(tmp_path):
+    """Seeds of one row must record the same training: where a run ran, what it evaluated after training and
+    how it logged are not part of it (a seed run with ``eval.episodes=1`` was refused as another method)."""
+    import json
+
+    from crowdbench.cli_submit import command_overrides
+
+    got = ["experiment=value_crowdnav", "algo.lookahead=cv", "seed=1", "cpus=2", "out=/x", "resume=true",
+           "eval.episodes=1", "eval.scenes=[hotel]", "viz.record=true", "train.logger=tensorboard"]
+    (tmp_path / "results.json").write_text(json.dumps({"meta": {"overrides": got}}))
+    assert command_overrides(tmp_path) == ["experiment=value_crowdnav", "algo.lookahead=cv", "seed=1", "cpus=2"]
+    assert command_overrides(tmp_path / "missing") is None
