@@ -157,7 +157,8 @@ def make_env(cfg, progress_reward: float = 0.0, human_dropout: float = 0.0, extr
     """The TorchRL env of ``cfg.env``, ``env.batch`` wide, seeded with ``cfg.seed``.
 
     ``progress_reward`` (``train.progress_reward``), ``human_dropout`` (``train.human_dropout``) and
-    ``human_thinning`` (``train.human_thinning``) are training-only transforms (:mod:`crowdbench.envs.transforms`); ``extra`` transforms go after them.
+    ``human_thinning`` (``train.human_thinning``) are training-only transforms (:mod:`crowdbench.envs.transforms`);
+    ``extra`` transforms go after them.
     ``playback_speeds`` (``train.playback_speeds``): :func:`training_world`.
     """
     from torchrl.envs import Compose, TransformedEnv
