@@ -103,3 +103,35 @@ def test_cli_eval_policy_oracle(tmp_path, capsys):
     assert "PRIVILEGED" in capsys.readouterr().out
     res = json.loads((tmp_path / "results.json").read_text())
     assert res["privileged"] is True and res["policy"] == "oracle"
+
+
+@pytest.mark.slow  # 4-6 s: 500 circle-20 cases generated, two searches
+def test_crowdnav_oracle_finds_the_path_a_narrower_beam_lost():
+    """CrowdNav circle 20's test case 10: every one of 128 beams collides (the committed row's failure until the
+    default grew), while ``env=crowdnav``'s beam of 512 reaches the goal, in the executed episode as in the plan:
+    the case was a search failure, not an unavoidable collision (docs/crowdnav.md, "The oracle's search effort")."""
+    from dataclasses import replace
+
+    from crowdbench.baselines.params import params
+    from crowdbench.cli import compose
+    from crowdbench.envs.crowdnav import CrowdNavScenario
+    from crowdbench.envs.factory import crowdnav_world, sim_config
+    from crowdbench.envs.torchrl_env import CrowdEnv
+    from crowdbench.protocols.crowdnav import future_view
+    from crowdbench.protocols.engine import episode_metrics, robot_traces
+
+    cfg = compose(["env=crowdnav", "env.n_humans=20"])
+    kw = params("oracle", cfg)
+    assert kw["beam"] == 512
+    sim = replace(sim_config(cfg.env), frame=Oracle.frame)
+    full = CrowdNavScenario(sim).test_list()
+    eps = {k: v[10:11] for k, v in full.items()}
+    outcomes = {}
+    for beam in (128, 512):
+        world, scen = crowdnav_world(sim, 1)
+        env = CrowdEnv(world, scen, episodes=eps)
+        oracle = Oracle(**{**kw, "beam": beam})
+        metrics = episode_metrics(robot_traces(env, oracle, privileged_view=future_view(world, sim, eps)), sim)
+        outcomes[beam] = (int(oracle.planned_outcome[0]), int(metrics["outcome"][0]))
+    assert outcomes[128][1] == COLLISION
+    assert outcomes[512] == (PLANNED_SUCCESS, SUCCESS)
