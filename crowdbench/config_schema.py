@@ -171,6 +171,7 @@ class GatedGCNConfig(GCNConfig):
 
     name: str = bounded("gatedgcn", choices=("gatedgcn",))
     eps: float = bounded(1.0e-6, gt=0)  # gate normaliser
+    edge_dist: bool = False  # each edge attribute carries |p_j - p_i| after p_j - p_i
 
 
 @dataclass

@@ -36,6 +36,8 @@ def training_config(cfg: dict) -> dict:
         out["env"].pop("sfm_backend")  # (numba's social force is not torch's bit for bit: kept when set)
     if out["encoder"].get("robot_radius2", 0) is None:  # the default, absent from checkpoints made before the option
         out["encoder"].pop("robot_radius2")
+    if out["encoder"].get("edge_dist") is False:  # the default, absent from checkpoints made before the option
+        out["encoder"].pop("edge_dist")
     if cfg["algo"].get("actor_base") == "orca" or cfg["train"].get("pretrain") == "orca":
         out["orca"] = dict(cfg["orca"])  # the residual's base and the demonstrator: their ORCA trains the weights too
     return {**out, "seed": cfg["seed"]}

@@ -163,8 +163,9 @@ def test_graph_tensors_roundtrip(real_obs):
 
 
 # --------------------------------------------------------------------------- reference
-def reference_gated(enc, robot, humans, mask, eps):
-    """Eq. 3-7 with Python loops over nodes and an uncapped graph built from the rule."""
+def reference_gated(enc, robot, humans, mask, eps, edge_dist=False):
+    """Eq. 3-7 with Python loops over nodes and an uncapped graph built from the rule; ``edge_dist``: each edge
+    attribute is ``(p_j - p_i, |p_j - p_i|)``."""
     d = enc.dim
     out = []
     for b in range(robot.shape[0]):
@@ -177,7 +178,11 @@ def reference_gated(enc, robot, humans, mask, eps):
         h = [x for _, _, x in nodes] + [enc.goal_emb(goal_x)]
         nbrs = {i: [j for j in range(n_ag) if j != i and float(((pos[j] - pos[i]) ** 2).sum()) <= 5.0] for i in range(n_ag)}
         nbrs[0].append(n_ag)  # goal -> robot
-        e = {(i, j): enc.edge_emb(pos[j] - pos[i]) for i in nbrs for j in nbrs[i]}
+        def attr(i, j):
+            rel = pos[j] - pos[i]
+            return torch.cat((rel, rel.norm().reshape(1))) if edge_dist else rel
+
+        e = {(i, j): enc.edge_emb(attr(i, j)) for i in nbrs for j in nbrs[i]}
         for layer in enc.layers:
             A, U = layer.tgt.weight.split(d)
             a_b, u_b = layer.tgt.bias.split(d)
@@ -220,15 +225,32 @@ def reference_gcn(enc, robot, humans, mask):
     return torch.stack(out)
 
 
+@pytest.mark.parametrize("edge_dist", [False, True])
 @pytest.mark.parametrize("rf", [True, False])
-def test_gatedgcn_matches_loop_reference(real_obs, rf):
+def test_gatedgcn_matches_loop_reference(real_obs, rf, edge_dist):
     torch.manual_seed(1)
-    enc = make_encoder("gatedgcn", dim=8, k=64, receptive_field=rf)  # K never binds
+    enc = make_encoder("gatedgcn", dim=8, k=64, receptive_field=rf, edge_dist=edge_dist)  # K never binds
     robot, humans, mask = (x[:4, 0] for x in obs_args(real_obs))
     with torch.no_grad():
         _, got = enc(robot, humans, mask)
-        want = reference_gated(enc, robot, humans, mask, eps=1e-6)
+        want = reference_gated(enc, robot, humans, mask, eps=1e-6, edge_dist=edge_dist)
     torch.testing.assert_close(got, want, atol=1e-4, rtol=1e-4)
+
+
+def test_edge_distance_is_an_option_of_gatedgcn_only(real_obs):
+    """The distance column: its own graph key (prepared graphs never mix), a finite gradient through the
+    lookahead critic's observation even on padded slots, and a one-line error for encoders without edges."""
+    enc = make_encoder("gatedgcn", dim=8, edge_dist=True)
+    assert enc.prep_key.endswith("_dist") and enc.prep_key != make_encoder("gatedgcn", dim=8).prep_key
+    robot, humans, mask = (x[:4, 0].clone() for x in obs_args(real_obs))
+    g = enc.build_graph(robot, humans, mask)
+    attr = g.edge_attr
+    torch.testing.assert_close(attr[..., 2], attr[..., :2].norm(dim=-1) * g.nbr_mask, atol=1e-5, rtol=0)
+    robot.requires_grad_(True)
+    enc(robot, humans, mask)[1].sum().backward()
+    assert torch.isfinite(robot.grad).all() and robot.grad.abs().sum() > 0
+    with pytest.raises(ValueError, match="encoder.edge_dist"):
+        make_encoder("gcn", dim=8, edge_dist=True)
 
 
 def test_gcn_matches_loop_reference(real_obs):

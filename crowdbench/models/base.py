@@ -96,6 +96,8 @@ class GraphEncoder(SplitEncoder):
     """
 
     uses_edges = True
+    # whether the layers' folded maps take a 3-column edge attribute (``edge_dist``: the distance after p_j - p_i)
+    edge_dist_ok = False
     layer_cls: type[nn.Module]  # one message-passing layer, built as layer_cls(dim, **layer_kwargs)
 
     def __init__(
@@ -106,9 +108,14 @@ class GraphEncoder(SplitEncoder):
         radius2: float = RADIUS2,
         receptive_field: bool = True,
         robot_radius2: float | None = None,
+        edge_dist: bool = False,
         **layer_kwargs,
     ):
         super().__init__()
+        if edge_dist and not self.edge_dist_ok:
+            raise ValueError(f"encoder.edge_dist: {type(self).__name__} has no edge attribute to carry it "
+                             "(available with encoder=gatedgcn)")
+        self.edge_dist = bool(edge_dist)
         self.out_dim = self.dim = dim
         self.n_layers = layers
         self.k = k
@@ -118,7 +125,7 @@ class GraphEncoder(SplitEncoder):
         self.robot_emb = nn.Linear(6, dim)
         self.human_emb = nn.Linear(4, dim)
         self.goal_emb = nn.Linear(6, dim)
-        self.edge_emb = nn.Linear(2, dim) if self.uses_edges else None
+        self.edge_emb = nn.Linear(3 if edge_dist else 2, dim) if self.uses_edges else None
         self._last_aux = None
         self.layers = nn.ModuleList(self.layer_cls(dim, **layer_kwargs) for _ in range(layers))
 
@@ -127,7 +134,7 @@ class GraphEncoder(SplitEncoder):
         robot, humans, humans_mask = unpack_obs(robot, humans, humans_mask)
         return build_graph(
             robot, humans, humans_mask, self.k, self.radius2, self.n_layers, self.receptive_field,
-            self.robot_radius2,
+            self.robot_radius2, self.edge_dist,
         )
 
     def forward(self, robot, humans=None, humans_mask=None):
@@ -141,6 +148,8 @@ class GraphEncoder(SplitEncoder):
         r2 = f"{self.radius2:g}".replace(".", "p")
         if self.robot_radius2 is not None:
             r2 += "_rr" + f"{self.robot_radius2:g}".replace(".", "p")
+        if self.edge_dist:
+            r2 += "_dist"
         return f"graph_k{self.k}_l{self.n_layers}_{layout}_r{r2}"
 
     def prepare(self, robot, humans=None, humans_mask=None) -> dict[str, torch.Tensor]:

@@ -109,7 +109,7 @@ class GatedLayer(nn.Module):
         bv = torch.addmm(torch.outer(self.src.bias, ind), self.src.weight, emb)  # [B E; V E] + biases
         w_t = torch.cat((emb, torch.addmm(torch.outer(self.tgt.bias, ind), self.tgt.weight, emb)))
         w_bc = torch.cat((bv[:d] + torch.outer(cw @ eb + self.C.bias, ind), cw @ ew), 1)
-        w_v = F.pad(bv[d:], (0, 2))
+        w_v = F.pad(bv[d:], (0, ew.shape[1]))  # V h_j reads no edge attribute (2 columns, 3 with edge_dist)
         w_e = torch.cat((torch.outer(eb, ind), ew), 1)
         return w_t.T, w_bc.T, w_v.T, w_e.T, torch.cat((w_bc, w_v, w_e)).T
 
@@ -130,6 +130,7 @@ class GatedGCNEncoder(GraphEncoder):
     """MP-GatedGCN: residual gated message passing with edge features (Eq. 3-7)."""
 
     uses_edges = True
+    edge_dist_ok = True
     layer_cls = GatedLayer
 
     def __init__(
@@ -141,5 +142,6 @@ class GatedGCNEncoder(GraphEncoder):
         receptive_field: bool = True,
         eps: float = 1e-6,
         robot_radius2: float | None = None,
+        edge_dist: bool = False,
     ):
-        super().__init__(dim, layers, k, radius2, receptive_field, robot_radius2, eps=eps)
+        super().__init__(dim, layers, k, radius2, receptive_field, robot_radius2, edge_dist, eps=eps)

@@ -108,7 +108,8 @@ class Graph(NamedTuple):
 
     @property
     def edge_attr(self) -> torch.Tensor:
-        """``[B*, T, K, 2]`` attributes ``p_j - p_i`` of the main slots (zero on padding)."""
+        """``[B*, T, K, 2]`` attributes ``p_j - p_i`` of the main slots (zero on padding; ``[.., 3]`` with the
+        distance after them when built with ``edge_dist``)."""
         return self.edge_in[..., Z_DIM:]
 
     @property
@@ -267,6 +268,7 @@ def build_graph(
     layers: int = 2,
     receptive_field: bool = True,
     robot_radius2: float | None = None,
+    edge_dist: bool = False,
 ) -> Graph:
     """Build the graph of ``[*, 6], [*, M, 4], [*, M]`` observations for ``layers`` layers.
 
@@ -274,6 +276,8 @@ def build_graph(
     (module docstring); otherwise every node but the goal is a receiving row.
     ``robot_radius2`` (default ``radius2``): the squared radius of the robot's own incoming
     edges; the edges between humans, and from the robot to a human, keep ``radius2``.
+    ``edge_dist``: every edge attribute (the goal edge's too) carries the distance ``|p_j - p_i|``
+    after ``p_j - p_i`` (3 columns instead of 2).
 
     The topology (who is whose neighbour) is not differentiable; the node and edge features
     are, with respect to the observation, when it requires grad (the lookahead critic's
@@ -293,9 +297,19 @@ def build_graph(
     # one row selection of [z, p], then p_j -> p_j - p_i; padded slots all zero
     edge_in = _gather_rows(torch.cat((z, pos), -1), idx)
     rel = edge_in[..., Z_DIM:] - (pos[:, :-1] if full else _gather_rows(pos, targets)).unsqueeze(2)
+    goal_rel = pos[:, -1] - pos[:, 0]
+    if edge_dist:
+        rel, goal_rel = with_distance(rel), with_distance(goal_rel)
     edge_in = torch.cat((edge_in[..., :Z_DIM], rel), -1) * mask.unsqueeze(-1)
-    goal_in = torch.cat((z[:, -1], pos[:, -1] - pos[:, 0]), -1)
+    goal_in = torch.cat((z[:, -1], goal_rel), -1)
     return Graph(idx, mask, z_t, edge_in, goal_in, valid, targets, sizes, full, lead)
+
+
+def with_distance(rel: torch.Tensor) -> torch.Tensor:
+    """``[..., 2]`` offsets -> ``[..., 3]`` offsets and their length. The squared length is clamped at
+    1e-12 m^2 before the root: padded slots (all zero) keep a finite gradient (zero) under the lookahead
+    critic's ``dQ/da``, where ``|x|``'s gradient at 0 is 0 / 0."""
+    return torch.cat((rel, rel.square().sum(-1, keepdim=True).clamp_min(1e-12).sqrt()), -1)
 
 
 def _topology(pos, valid, b, n, k, radius2, layers, receptive_field, robot_radius2=None):
