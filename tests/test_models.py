@@ -178,11 +178,10 @@ def reference_gated(enc, robot, humans, mask, eps, edge_dist=False):
         h = [x for _, _, x in nodes] + [enc.goal_emb(goal_x)]
         nbrs = {i: [j for j in range(n_ag) if j != i and float(((pos[j] - pos[i]) ** 2).sum()) <= 5.0] for i in range(n_ag)}
         nbrs[0].append(n_ag)  # goal -> robot
-        def attr(i, j):
-            rel = pos[j] - pos[i]
-            return torch.cat((rel, rel.norm().reshape(1))) if edge_dist else rel
-
-        e = {(i, j): enc.edge_emb(attr(i, j)) for i in nbrs for j in nbrs[i]}
+        rels = {(i, j): pos[j] - pos[i] for i in nbrs for j in nbrs[i]}
+        if edge_dist:
+            rels = {ij: torch.cat((r, r.norm().reshape(1))) for ij, r in rels.items()}
+        e = {ij: enc.edge_emb(r) for ij, r in rels.items()}
         for layer in enc.layers:
             A, U = layer.tgt.weight.split(d)
             a_b, u_b = layer.tgt.bias.split(d)
