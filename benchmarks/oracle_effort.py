@@ -1,6 +1,6 @@
 """The privileged oracle's success against its search effort on a CrowdNav setting (docs/crowdnav.md, "Oracle").
 
-    python benchmarks/oracle_effort.py                                   # circle 20: the cases beam 128 fails
+    python benchmarks/oracle_effort.py                                   # circle 20: the 16 cases beam 128 fails
     python benchmarks/oracle_effort.py --cases all --searches "beam=128"
     python benchmarks/oracle_effort.py --searches "beam=512;beam=512,speeds=1/0.75/0.5/0.25,headings=32"
 
@@ -8,9 +8,9 @@ Each search is a set of oracle settings (``beam``, ``headings``, ``speeds`` as `
 ``v_max``, ``cell``); the rest are ``env=crowdnav``'s. For each it plans the chosen test cases against the
 humans' future (simulated once without the robot, as the harness does) and prints how many plans reach the
 goal, the wall time and the cases still failed. The planned outcome is the executed one (tests/test_oracle.py
-checks it), so no rollout is needed to count successes. ``--cases failed`` (the default) takes the cases the
-committed oracle row fails (``leaderboard/results/oracle/<track>.json``); ``all`` the 500 test cases; or a
-comma-separated list of case ids.
+checks it), so no rollout is needed to count successes. ``--cases``: a comma-separated list of case ids (the
+default: the 16 circle-20 cases beam 128 fails, found with ``--cases all --searches beam=128``); ``all``, the 500
+test cases; ``failed``, the cases the committed oracle row fails (``leaderboard/results/oracle/<track>.json``).
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ from pathlib import Path
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
+BEAM_128_FAILS = "10,76,117,120,147,176,190,205,232,265,311,317,318,416,474,496"  # circle 20's test cases
 DEFAULT_SEARCHES = ("beam=128;beam=512;beam=2048;beam=512,speeds=1/0.75/0.5/0.25;"
                     "beam=512,headings=32;beam=2048,speeds=1/0.75/0.5/0.25,headings=32")
 
@@ -47,7 +48,10 @@ def case_ids(which: str, track: str, n_cases: int) -> list[int]:
     if which == "failed":
         saved = json.loads((ROOT / "leaderboard" / "results" / "oracle" / f"{track}.json").read_text())
         scene = next(iter(saved["unavoidable"].values()))
-        return sorted(scene["collision"] + scene["timeout"])
+        failed = sorted(scene["collision"] + scene["timeout"])
+        if not failed:
+            raise SystemExit(f"--cases failed: the committed oracle row fails no case of {track}")
+        return failed
     return [int(c) for c in which.split(",")]
 
 
@@ -55,7 +59,7 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenario", default="circle", choices=("circle", "square"))
     ap.add_argument("--humans", type=int, default=20)
-    ap.add_argument("--cases", default="failed", help="failed | all | comma-separated case ids")
+    ap.add_argument("--cases", default=BEAM_128_FAILS, help="comma-separated case ids | all | failed")
     ap.add_argument("--searches", default=DEFAULT_SEARCHES, help="';'-separated oracle settings")
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args(argv)

@@ -307,8 +307,8 @@ def build_graph(
 
 def with_distance(rel: torch.Tensor) -> torch.Tensor:
     """``[..., 2]`` offsets -> ``[..., 3]`` offsets and their length. The squared length is clamped at
-    1e-12 m^2 before the root: padded slots (all zero) keep a finite gradient (zero) under the lookahead
-    critic's ``dQ/da``, where ``|x|``'s gradient at 0 is 0 / 0."""
+    1e-12 m^2 before the root: a zero offset (the goal edge of a robot on its goal, a padded slot) keeps a
+    finite gradient under the lookahead critic's ``dQ/da``, where ``|x|``'s gradient at 0 is 0 / 0."""
     return torch.cat((rel, rel.square().sum(-1, keepdim=True).clamp_min(1e-12).sqrt()), -1)
 
 
