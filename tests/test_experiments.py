@@ -38,6 +38,9 @@ def training_config(cfg: dict) -> dict:
         out["encoder"].pop("robot_radius2")
     if out["encoder"].get("edge_dist") is False:  # the default, absent from checkpoints made before the option
         out["encoder"].pop("edge_dist")
+    if out["algo"].get("actor_base", "none") == "none":  # no base: its residual's size trains nothing (and the
+        out["algo"].pop("actor_base", None)  # on-policy algorithms' checkpoints before the option lack both)
+        out["algo"].pop("actor_residual", None)
     if cfg["algo"].get("actor_base") == "orca" or cfg["train"].get("pretrain") == "orca":
         out["orca"] = dict(cfg["orca"])  # the residual's base and the demonstrator: their ORCA trains the weights too
     return {**out, "seed": cfg["seed"]}

@@ -7,7 +7,7 @@ here and the registry's actor kind); losses, critics and updates live in the alg
 from __future__ import annotations
 
 import torch
-from tensordict.nn import NormalParamExtractor, TensorDictModule
+from tensordict.nn import NormalParamExtractor, TensorDictModule, TensorDictSequential
 from torch import nn
 from torchrl.data import Bounded
 from torchrl.modules import ProbabilisticActor, TanhNormal
@@ -19,6 +19,7 @@ from crowdbench.models.graph import unpack_obs
 from crowdbench.models.heads import BASE_ACTION, OBS_KEYS, Actor, actor_module, mlp
 
 LOG_PROB = (GROUP, "action_log_prob")
+RESIDUAL = (GROUP, "residual")  # a stochastic residual actor's sample, the key its log-probability is of
 BASES = ("none", "orca")  # algo.actor_base
 
 
@@ -96,6 +97,25 @@ class GaussianHead(nn.Module):
         return self.head(h)
 
 
+class ResidualAction(nn.Module):
+    """``a = P(ORCA(s) + r)`` for a sampled residual ``r`` (a stochastic actor on an ORCA base): the same base and
+    projection as :class:`OrcaResidual`, after the distribution instead of inside the network."""
+
+    def __init__(self, base, v_max: float):
+        super().__init__()
+        self.base, self.v_max = [base], float(v_max)  # in a list: a solver, not a submodule
+
+    def forward(self, robot, humans, humans_mask, residual):
+        base = self.base[0].velocities(*unpack_obs(robot, humans, humans_mask))
+        a = base.to(residual.dtype) + residual
+        return a * (self.v_max / a.norm(dim=-1, keepdim=True).clamp_min(self.v_max))
+
+
+def residual_distribution(actor: TensorDictSequential):
+    """The probabilistic part of a stochastic residual actor (what PPO's loss evaluates), else ``actor``."""
+    return actor[0] if isinstance(actor, TensorDictSequential) and RESIDUAL in actor[0].out_keys else actor
+
+
 def leaf_action_spec(n_agents: int, v_max: float) -> Bounded:
     return Bounded(-v_max, v_max, (n_agents, 2))
 
@@ -104,18 +124,30 @@ def build_actor(algo: str, encoder_cfg: dict, v_max: float, hidden=None, squash:
                 base=None, residual: float | None = None) -> TensorDictModule:
     """Algorithm ``algo``'s policy network: deterministic (``squash``: models/heads.py Actor; a residual on
     ``base``'s velocity if given: :class:`OrcaResidual`) or a TanhNormal ``ProbabilisticActor`` that acts by
-    its mode under deterministic exploration."""
+    its mode under deterministic exploration (on a ``base``: a TanhNormal residual of at most ``residual`` m/s
+    per component, sampled into :data:`RESIDUAL`, then :class:`ResidualAction` writes the action)."""
     kind = actor_kind(algo)
     encoder = make_encoder(**encoder_cfg)
     if kind == "deterministic":
         return actor_module(Actor(encoder, hidden, v_max, squash) if base is None
                             else OrcaResidual(encoder, hidden, v_max, squash, base, residual))
+    if base is not None and kind != "tanh_normal":
+        raise ValueError(f"algo.actor_base needs a deterministic or a TanhNormal actor; {algo}'s is {kind}")
+    head = GaussianHead(encoder, hidden)
+    # on an ORCA base the distribution is over the residual, at most `residual` m/s per component; its mean
+    # starts at zero (the last layer zeroed), so the untrained actor's deterministic action is ORCA's
+    bound = v_max if base is None else float(v_max if residual is None else residual)
     if base is not None:
-        raise ValueError(f"algo.actor_base needs a deterministic actor; {algo}'s is {kind}")
-    params = TensorDictModule(GaussianHead(encoder, hidden), in_keys=list(OBS_KEYS),
-                              out_keys=[(GROUP, "loc"), (GROUP, "scale")])
-    return ProbabilisticActor(
-        params, in_keys={"loc": (GROUP, "loc"), "scale": (GROUP, "scale")}, out_keys=[ACTION],
-        distribution_class=TanhNormal, distribution_kwargs={"low": -v_max, "high": v_max},
+        nn.init.zeros_(head.head[0][-1].weight)
+        nn.init.zeros_(head.head[0][-1].bias)
+    params = TensorDictModule(head, in_keys=list(OBS_KEYS), out_keys=[(GROUP, "loc"), (GROUP, "scale")])
+    dist = ProbabilisticActor(
+        params, in_keys={"loc": (GROUP, "loc"), "scale": (GROUP, "scale")},
+        out_keys=[ACTION if base is None else RESIDUAL],
+        distribution_class=TanhNormal, distribution_kwargs={"low": -bound, "high": bound},
         return_log_prob=True, log_prob_key=LOG_PROB,
     )
+    if base is None:
+        return dist
+    return TensorDictSequential(dist, TensorDictModule(ResidualAction(base, v_max), in_keys=[*OBS_KEYS, RESIDUAL],
+                                                       out_keys=[ACTION]))

@@ -25,7 +25,7 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.objectives import ClipPPOLoss, ValueEstimators
 
-from crowdbench.algos.actors import LOG_PROB
+from crowdbench.algos.actors import BASES, LOG_PROB, RESIDUAL, residual_distribution
 from crowdbench.algos.base import Algorithm
 from crowdbench.algos.multiagent import agent_transitions
 from crowdbench.envs.policy import ACTION, GROUP
@@ -57,6 +57,9 @@ class PPOConfig:
     minibatch_size: int = bounded(1024, ge=1)  # transitions per gradient step
     max_grad_norm: float = bounded(1.0, gt=0)
     normalize_advantage: bool = True  # per minibatch
+    # orca: the actor samples a residual of at most actor_residual m/s added to ORCA's velocity (algos/actors.py)
+    actor_base: str = bounded("none", choices=BASES)
+    actor_residual: float = bounded(0.15, gt=0)
 
 
 class ValueNet(nn.Module):
@@ -84,12 +87,18 @@ class PPO(Algorithm):
         super().__init__(cfg, n_agents)
         a = self.a
         critic = self.make_critic(cfg)
+        # on an ORCA base (algo.actor_base=orca) the loss sees the distribution over the residual, whose
+        # sample is what the log-probability is of; the action the env received follows from it
+        dist = residual_distribution(self.actor)
+        action = RESIDUAL if dist is not self.actor else ACTION
+        if action == RESIDUAL:
+            self.keep = (*self.keep, RESIDUAL)
         self.loss = loss = ClipPPOLoss(
-            self.actor, critic, clip_epsilon=a.clip_epsilon, entropy_bonus=a.entropy_coef > 0,
+            dist, critic, clip_epsilon=a.clip_epsilon, entropy_bonus=a.entropy_coef > 0,
             entropy_coeff=a.entropy_coef, critic_coeff=a.critic_coef, loss_critic_type=a.loss_critic_type,
             normalize_advantage=a.normalize_advantage)
         loss.set_keys(advantage=ADVANTAGE, value_target=VALUE_TARGET, value=VALUE, sample_log_prob=LOG_PROB,
-                      action=ACTION, reward=(GROUP, "reward"), done=(GROUP, "done"), terminated=(GROUP, "terminated"))
+                      action=action, reward=(GROUP, "reward"), done=(GROUP, "done"), terminated=(GROUP, "terminated"))
         loss.make_value_estimator(ValueEstimators.GAE, gamma=a.gamma, lmbda=a.lmbda)
         self.params = list(loss.parameters())
         self.opt = torch.optim.Adam(self.params, lr=a.lr)

@@ -139,8 +139,13 @@ def minibatches(n: int, size: int, epochs: int, generator: torch.Generator):
 def policy_action(actor, td: TensorDictBase, kind: str) -> torch.Tensor:
     """The action an evaluation would take (differentiable): a TanhNormal actor's deterministic sample."""
     obs = td.select(*OBS_KEYS, BASE_ACTION, strict=False)  # a residual's stored base velocity, where present
-    if kind == "tanh_normal":
+    if kind == "tanh_normal" and hasattr(actor, "get_dist"):
         return actor.get_dist(obs).deterministic_sample
+    if kind == "tanh_normal":  # a residual on ORCA (algos/actors.py): its mode, through the base
+        from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            return actor(obs).get(ACTION)
     return actor(obs).get(ACTION)
 
 

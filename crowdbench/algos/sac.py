@@ -22,6 +22,8 @@ class SACConfig(OffPolicyConfig):
     lr_alpha: float = bounded(3.0e-4, gt=0)  # the temperature's learning rate
     # initial temperature, scaled to this reward (conf/algo/sac.yaml says why 0.005)
     alpha_init: float = bounded(0.005, gt=0)
+    # SACLoss reads the log-probability of the action the env received: no residual distribution
+    actor_base: str = bounded("none", choices=("none",))
 
 
 class SAC(OffPolicyAlgorithm):
