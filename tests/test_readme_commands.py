@@ -108,6 +108,11 @@ INVOCATIONS: dict[str, list[list[str]]] = {
         [["run", "experiment=selfplay_residual", "seed=1", "cpus=1", "env.n_agents=4", *SELFPLAY,
           "env.eval_n_agents=[4]", "train.pretrain=orca", "train.pretrain_frames=8", "train.pretrain_epochs=1",
           "train.pretrain_bc_updates=4", "out={tmp}/sp_res"]],
+    "crowdbench run experiment=selfplay_ppo_residual method=gatedgcn_mappo\\|gatedgcn_ippo seed=S cpus=1":  # 4 agents, 64 frames
+        [["run", "experiment=selfplay_ppo_residual", f"method={m}", "seed=1", "cpus=1", "env.n_agents=4", "env.batch=4",
+          "train.frames_per_batch=32", "train.total_frames=64", "train.checkpoint_every=64", "algo.minibatch_size=64",
+          "encoder.dim=8", "env.eval_episodes=2", "env.eval_scenarios=[circle]", "env.eval_n_agents=[4]",
+          f"out={{tmp}}/sp_ppo_{m}"] for m in ("gatedgcn_mappo", "gatedgcn_ippo")],
     "crowdbench run env=selfplay algo=td3 encoder=gatedgcn":
         [["run", "env=selfplay", "algo=td3", "encoder=gatedgcn", "env.n_agents=4", *SELFPLAY, "out={selfplay}"]],
     "crowdbench run env=selfplay env.n_agents=16 env.scenario=square env.background=students001":
