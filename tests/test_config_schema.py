@@ -8,6 +8,7 @@ import os
 import shutil
 import subprocess
 import sys
+from dataclasses import fields
 from pathlib import Path
 
 import pytest
@@ -17,6 +18,7 @@ from hydra import compose as hydra_compose
 from hydra import initialize_config_dir
 from omegaconf import OmegaConf
 
+from crowdbench.algos.ppo import PPOConfig
 from crowdbench.cli import CONFIG_DIR, compose, main
 from crowdbench.config_check import ConfigError, short, unknown_keys, validate, validate_checkpoint
 from crowdbench.config_schema import ALGO_SCHEMAS, ENCODER_SCHEMAS, ENV_SCHEMAS, RootConfig
@@ -54,6 +56,16 @@ RADIUS_ENCODERS = ('gat', 'gatedgcn', 'gcn')  # the encoders with an edge radius
 # they set algo.replay or algo.actor_base
 OFF_POLICY_EXPERIMENTS = ("paper", "leaderboard", "baselines", "crowdnav", "crowdnav_distill", "reactive", "warmstart",
                           "leaderboard_long", "selfplay_warmstart", "selfplay_residual")
+ACTOR_CRITIC_EXPERIMENTS = (*OFF_POLICY_EXPERIMENTS, "selfplay_ppo_residual")  # their algo keys are no value keys
+SELFPLAY_EXPERIMENTS = ("selfplay", "selfplay_warmstart", "selfplay_residual", "selfplay_ppo_residual")
+
+
+def _experiment_algo_keys(name: str) -> set[str]:
+    """The ``algo`` keys an experiment's yaml sets (its own, not its defaults')."""
+    return set((yaml.safe_load((CONFIG_DIR / "experiment" / f"{name}.yaml").read_text()) or {}).get("algo") or {})
+
+
+PPO_KEYS = {f.name for f in fields(PPOConfig)}
 
 
 def _algo_of(method: str) -> str:
@@ -74,23 +86,24 @@ def test_every_shipped_config_combination_validates_and_every_key_has_a_schema_f
             cfg = hydra_compose(config_name="config", overrides=overrides)
             seen += 1
             env = cfg.env.name
-            if any(f"method={m}" in overrides for m in ON_POLICY_METHODS) and any(
-                    f"experiment={e}" in overrides for e in OFF_POLICY_EXPERIMENTS):
-                # an off-policy recipe's replay settings are no PPO-family keys
+            exp = next((o.split("=", 1)[1] for o in overrides if o.startswith("experiment=")), None)
+            if any(f"method={m}" in overrides for m in ON_POLICY_METHODS) and exp in OFF_POLICY_EXPERIMENTS \
+                    and not _experiment_algo_keys(exp) <= PPO_KEYS:
+                # an off-policy recipe's replay settings are no PPO-family keys (its ORCA base is one)
                 with pytest.raises(ConfigError,
                                    match=r"^algo\.(replay|exploration_sigma|actor_base): algo='(ppo|ippo|mappo)' has no such key"):
                     validate(cfg)
                 continue
             value_method = any(o.startswith("method=") and o.endswith("_value") for o in overrides)
             value_exp = any(f"experiment={e}" in overrides for e in ("value_crowdnav", "value_replay"))
-            other_exp = any(f"experiment={e}" in overrides for e in OFF_POLICY_EXPERIMENTS)
+            other_exp = exp in ACTOR_CRITIC_EXPERIMENTS
             if value_method and other_exp or value_exp and not value_method and any(
                     o.startswith("method=") for o in overrides):
                 # an actor-critic recipe's keys are no value keys, and the value recipe's none of theirs
                 with pytest.raises(ConfigError, match=r"^algo\.\w+: algo='\w+' has no such key"):
                     validate(cfg)
                 continue
-            if any(f"experiment={e}" in overrides for e in ("selfplay", "selfplay_warmstart", "selfplay_residual")) and env != "selfplay":
+            if exp in SELFPLAY_EXPERIMENTS and env != "selfplay":
                 # a self-play recipe's env keys (mixed crossings, agent counts) are env=selfplay's alone
                 try:
                     validate(cfg)
@@ -102,6 +115,11 @@ def test_every_shipped_config_combination_validates_and_every_key_has_a_schema_f
             if "experiment=reactive" in overrides and env != "replay":
                 with pytest.raises(ConfigError, match="^env.humans: must be one of orca, sfm"):
                     validate(cfg)  # reactive replay is the replay env's (env.humans=reactive_replay)
+                continue
+            if "method=gatedgcn_sac" in overrides and cfg.algo.get("actor_base") == "orca":
+                # an ORCA base under SAC: its loss scores the action the env received, not a residual
+                with pytest.raises(ConfigError, match="^algo.actor_base: must be one of none"):
+                    validate(cfg)
                 continue
             if "experiment=paper" in overrides and "method=gatedgcn_sac" in overrides:
                 # Table I's Gaussian exploration is TD3's; SAC explores by sampling its policy
