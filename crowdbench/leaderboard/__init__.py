@@ -9,35 +9,28 @@ The command line is ``crowdbench leaderboard`` (crowdbench/cli.py); field refere
 docs/submitting.md.
 """
 
-# Names resolve on first use (PEP 562): a submission's worker imports ``crowdbench.leaderboard.wire`` and
-# must not pay for the board, the renderer and every protocol it never uses (about 1.5 s per worker start).
-_SOURCES = {
-    "board": ["run"],
-    "cache": ["EVAL_MODULES", "HARNESS_VERSION", "code_files", "fingerprint"],
-    "harness": ["LAUNCHERS", "build_policy"],
-    "render": ["BLOCK_END", "BLOCK_START", "BLOCKS", "diff_rows", "render_block", "render_docs_block",
-               "render_readme"],
-    "schema": ["DEFAULT_ROOT", "PACKAGE_DIR", "REPO_DIR", "Submission", "SubmissionError", "make_submission",
-               "read_submission"],
-}
-_OWNER = {name: module for module, names in _SOURCES.items() for name in names}
+from crowdbench.leaderboard.board import run
+from crowdbench.leaderboard.cache import EVAL_MODULES, HARNESS_VERSION, code_files, fingerprint
+from crowdbench.leaderboard.harness import LAUNCHERS, build_policy
+from crowdbench.leaderboard.render import (
+    BLOCK_END,
+    BLOCK_START,
+    BLOCKS,
+    diff_rows,
+    render_block,
+    render_docs_block,
+    render_readme,
+)
+from crowdbench.leaderboard.schema import (
+    DEFAULT_ROOT,
+    PACKAGE_DIR,
+    REPO_DIR,
+    Submission,
+    SubmissionError,
+    make_submission,
+    read_submission,
+)
 
 __all__ = ["BLOCKS", "BLOCK_END", "BLOCK_START", "DEFAULT_ROOT", "EVAL_MODULES", "HARNESS_VERSION", "LAUNCHERS", "PACKAGE_DIR",
            "REPO_DIR", "Submission", "SubmissionError", "build_policy", "code_files", "diff_rows", "fingerprint",
            "make_submission", "read_submission", "render_block", "render_docs_block", "render_readme", "run"]
-assert sorted(__all__) == sorted(_OWNER)
-
-
-def __getattr__(name: str):
-    module = _OWNER.get(name)
-    if module is None:
-        raise AttributeError(f"module 'crowdbench.leaderboard' has no attribute {name!r}")
-    import importlib
-
-    value = getattr(importlib.import_module(f"crowdbench.leaderboard.{module}"), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(__all__))
