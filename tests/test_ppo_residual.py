@@ -96,23 +96,3 @@ def test_a_mappo_run_checkpoints_and_its_policy_acts_as_in_training(tmp_path):
     assert torch.equal(policy.act(obs.clone()), trained)
     assert not torch.equal(trained, build("orca", cfg).act(obs))  # it learned a residual
 
-
-@pytest.mark.slow
-def test_a_mappo_residual_submission_acts_in_its_worker_as_in_process(tmp_path):
-    """The sampled-residual actor with ORCA's solver inside the confined worker: the same bits as in-process."""
-    from pathlib import Path
-
-    from crowdbench.leaderboard.loading import dummy_obs
-    from crowdbench.leaderboard.sandbox import Limits
-    from crowdbench.leaderboard.worker import WorkerPolicy
-
-    cfg = compose([*SMALL, "algo=mappo", *SELFPLAY, "train.frames_per_batch=64", "train.total_frames=64",
-                   "algo.minibatch_size=64"])
-    sub = tmp_path / "lb" / "submissions" / "res"
-    train(cfg, sub, progress=False)
-    (sub / "submission.yaml").write_text("name: res\nkind: learned\nentry: res\nencoder: gatedgcn\nalgo: mappo\n"
-                                         "track: selfplay\nauthors: [crowdbench]\n")
-    obs = dummy_obs(batch=4, humans=3)
-    with WorkerPolicy(sub, "res", Limits(step_s=20.0, load_s=120.0, memory_gb=6.0)) as p:
-        remote = p.act(obs)
-    assert torch.equal(remote, policy_from_checkpoint(Path(sub) / "checkpoint.pt").act(obs))

@@ -121,18 +121,27 @@ def test_a_bad_base_is_refused_in_one_line(bad, capsys):
     assert rc != 0 and "actor_base" in err and len(err.splitlines()) == 1
 
 
+WORKER_RUNS = {  # a residual actor of each kind: TD3's deterministic one, MAPPO's sampled residual (self-play)
+    "td3": [*TINY, "train.total_frames=64"],
+    "mappo": ["train.pretrain=null", "algo=mappo", "env=selfplay", "env.n_agents=4", "env.batch=4", "encoder.dim=16",
+              "algo.actor_base=orca", "train.frames_per_batch=64", "train.total_frames=64", "algo.minibatch_size=64"],
+}
+
+
 @pytest.mark.slow
-def test_a_residual_submission_acts_in_its_worker_as_in_process(tmp_path):
+@pytest.mark.parametrize("algo", sorted(WORKER_RUNS))
+def test_a_residual_submission_acts_in_its_worker_as_in_process(algo, tmp_path):
     """ORCA's solver (pyrvo) inside the confined worker: the same bits as in-process."""
     from crowdbench.leaderboard.loading import dummy_obs
     from crowdbench.leaderboard.sandbox import Limits
     from crowdbench.leaderboard.worker import WorkerPolicy
 
-    cfg = compose([*TINY, "train.total_frames=64"])
+    cfg = compose(WORKER_RUNS[algo])
     sub = tmp_path / "lb" / "submissions" / "res"
     train(cfg, sub, progress=False)
-    (sub / "submission.yaml").write_text("name: res\nkind: learned\nentry: res\nencoder: gatedgcn\nalgo: td3\n"
-                                         "authors: [crowdbench]\n")
+    track = "track: selfplay\n" if algo == "mappo" else ""
+    (sub / "submission.yaml").write_text(f"name: res\nkind: learned\nentry: res\nencoder: gatedgcn\nalgo: {algo}\n"
+                                         f"{track}authors: [crowdbench]\n")
     obs = dummy_obs(batch=4, humans=3)
     with WorkerPolicy(sub, "res", Limits(step_s=20.0, load_s=120.0, memory_gb=6.0)) as p:
         remote = p.act(obs)
