@@ -13,10 +13,14 @@ from __future__ import annotations
 import torch
 
 
+def into_disc(a: torch.Tensor, v_max: float) -> torch.Tensor:
+    """``a`` scaled back onto the speed disc where its norm exceeds ``v_max``, unchanged inside it."""
+    return a * (v_max / a.norm(dim=-1, keepdim=True).clamp_min(v_max))
+
+
 def clip_speed(action: torch.Tensor, v_max: float) -> torch.Tensor:
     """Each component clamped to ``[-v_max, v_max]``, then the speed clipped to ``v_max`` (SPEC section 3)."""
-    a = action.clamp(-v_max, v_max)
-    return a * (v_max / a.norm(dim=-1, keepdim=True).clamp_min(v_max))
+    return into_disc(action.clamp(-v_max, v_max), v_max)
 
 
 def advance(pos: torch.Tensor, vel: torch.Tensor, dt: float) -> torch.Tensor:

@@ -13,7 +13,6 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from crowdbench.algos.actors import LOG_PROB, RESIDUAL, residual_distribution
 from crowdbench.algos.checkpoint import load_checkpoint, policy_from_checkpoint
-from crowdbench.algos.ppo import PPO
 from crowdbench.algos.registry import component as algorithm_class
 from crowdbench.algos.train import train
 from crowdbench.cli import compose
@@ -42,7 +41,7 @@ def test_the_untrained_actor_acts_as_the_orca_baseline(algo):
     _, batch = _collected(cfg, 64)
     obs = batch.reshape(-1).select(*OBS_KEYS)
     assert obs["agents", "observation", "humans_mask"].any()
-    actor = PPO(cfg, 4).actor if algo == "ppo" else algorithm_class(algo)(cfg, 4).actor
+    actor = algorithm_class(algo)(cfg, 4).actor
     with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
         mine = actor(obs.clone())[ACTION]
     # what the world executes (the speed clipped into the disc, which ORCA's solver can leave by a rounding)

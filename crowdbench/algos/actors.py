@@ -14,6 +14,7 @@ from torchrl.modules import ProbabilisticActor, TanhNormal
 
 from crowdbench.algos.registry import actor_kind
 from crowdbench.envs.policy import ACTION, GROUP
+from crowdbench.kinematics import into_disc
 from crowdbench.models import make_encoder
 from crowdbench.models.graph import unpack_obs
 from crowdbench.models.heads import BASE_ACTION, OBS_KEYS, Actor, actor_module, mlp
@@ -51,7 +52,7 @@ class OrcaResidual(Actor):
         if base is None:
             base = self.base[0].velocities(robot, humans, humans_mask)
         a = base.to(h.dtype) + self.act(h) * (self.scale / self.v_max)
-        return a * (self.v_max / a.norm(dim=-1, keepdim=True).clamp_min(self.v_max))
+        return into_disc(a, self.v_max)
 
     def store_base(self, td):
         """Sets :data:`BASE_ACTION` (and ``("next", *BASE_ACTION)``) of ``td``'s observations in place.
@@ -108,7 +109,7 @@ class ResidualAction(nn.Module):
     def forward(self, robot, humans, humans_mask, residual):
         base = self.base[0].velocities(*unpack_obs(robot, humans, humans_mask))
         a = base.to(residual.dtype) + residual
-        return a * (self.v_max / a.norm(dim=-1, keepdim=True).clamp_min(self.v_max))
+        return into_disc(a, self.v_max)
 
 
 def residual_distribution(actor: TensorDictSequential):
