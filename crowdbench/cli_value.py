@@ -17,8 +17,10 @@ def run_value(cfg, out: Path, overrides: list[str], evaluate=None, resume: bool 
     overrides)``; default: CrowdNav's 500 test cases of ``env.eval_settings``). Results carry ``privileged:
     true`` with ``lookahead=query``."""
     from crowdbench.algos.checkpoint import policy_from_checkpoint
+    from crowdbench.algos.curriculum import stages
     from crowdbench.algos.value_train import train_value
 
+    stages(cfg)  # a curriculum over agents is self-play's: refused here in one line, not ignored
     stats = train_value(cfg, out, resume=resume)
     policy = policy_from_checkpoint(out / "checkpoint.pt")
     t0 = time.perf_counter()

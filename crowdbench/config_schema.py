@@ -284,6 +284,10 @@ class TrainConfig:
     human_thinning: float = bounded(0.0, ge=0, le=1)  # a probability (env=replay's recorded humans)
     # the training scene replayed at each of these speeds (1 = as recorded; env=replay; data/scenes.py playback_scene)
     playback_speeds: list[float] = field(default_factory=lambda: [1.0], metadata={"min_len": 1, "gt": 0, "le": 4})
+    # self-play, on-policy: curriculum_agents[i] agents until curriculum_frames[i] frames, then env.n_agents
+    # (crowdbench/algos/curriculum.py; the cross-field rules are checked there, before training)
+    curriculum_agents: list[int] = field(default_factory=list, metadata={"ge": 1})
+    curriculum_frames: list[int] = field(default_factory=list, metadata={"ge": 1})
     # imitation warm start before RL (crowdbench/algos/pretrain.py); a resumed run never repeats it
     pretrain: str | None = bounded(None, choices=("orca", "checkpoint"))
     pretrain_checkpoint: str | None = None  # pretrain=checkpoint: the expert (a value entry: lookahead cv)

@@ -32,6 +32,9 @@ def training_config(cfg: dict) -> dict:
         out["train"].pop("human_thinning")
     if out["train"].get("playback_speeds") in ([1.0], None):  # as recorded: absent from checkpoints made before the option
         out["train"].pop("playback_speeds", None)
+    for key in ("curriculum_agents", "curriculum_frames"):  # no curriculum: absent from checkpoints made before it
+        if out["train"].get(key) == []:
+            out["train"].pop(key)
     if out["env"].get("sfm_backend") == "torch":  # the default, absent from checkpoints made before the option
         out["env"].pop("sfm_backend")  # (numba's social force is not torch's bit for bit: kept when set)
     if out["encoder"].get("robot_radius2", 0) is None:  # the default, absent from checkpoints made before the option

@@ -93,11 +93,14 @@ INVOCATIONS: dict[str, list[list[str]]] = {
     "crowdbench leaderboard --check":
         [["leaderboard", "--check", "--root", "{lb}", "--episodes", "2", "--scenes", "hotel", "--jobs", "2",
           "--tracks", "v1"]],
+    # one submission evaluated again in a confined worker (--force: its cached result would be kept); its 5 sweep
+    # siblings would run the same code path, at ~8 s of worker start each
     "crowdbench leaderboard --sandbox bubblewrap":
         [["leaderboard", "--root", "{lb}", "--episodes", "2", "--scenes", "hotel", "--tracks", "v1", "--sandbox",
-          "bubblewrap"]],
+          "bubblewrap", "--only", "tiny_run", "--force"]],
     "crowdbench leaderboard --tracks v1,v2-orca":
-        [["leaderboard", "--tracks", "v1,v2-orca", "--root", "{lb}", "--episodes", "2", "--scenes", "hotel"]],
+        [["leaderboard", "--tracks", "v1,v2-orca", "--root", "{lb}", "--episodes", "2", "--scenes", "hotel",
+          "--only", "tiny_run"]],
     "crowdbench leaderboard --site DIR [--site-figures N]":  # figures and the browser: tests/test_site.py
         [["leaderboard", "--root", "{lb}", "--episodes", "2", "--scenes", "hotel", "--tracks", "v1", "--site",
           "{tmp}/site", "--site-figures", "0"]],
@@ -226,6 +229,7 @@ class Runner:
                        "lb": tmp / "lb", "selfplay": tmp / "selfplay"}
         (tmp / "lb" / "submissions").mkdir(parents=True)
         self.done: dict[str, list[str]] = {}
+        self.output: dict[str, str] = {}  # what an in-process command printed
         # train.logger=wandb: nothing sent, W&B's settings and cache under tmp
         self.wandb = {"WANDB_MODE": "offline", "WANDB_SILENT": "true", "WANDB_DIR": str(tmp),
                       "WANDB_CACHE_DIR": str(tmp / "wandb-cache"), "WANDB_CONFIG_DIR": str(tmp / "wandb-config")}
@@ -254,7 +258,9 @@ class Runner:
                             os.environ.pop(k)
                         else:
                             os.environ[k] = v
-                err = capsys.readouterr().err[-3000:]
+                captured = capsys.readouterr()
+                self.output[command] = captured.out + captured.err
+                err = captured.err[-3000:]
             if rc != 0:
                 failed.append(f"crowdbench {' '.join(args)}: exit {rc}: {err}")
         self.done[command] = failed
@@ -299,6 +305,14 @@ def test_readme_command_runs(command, runner, monkeypatch, capsys):
     if "--sandbox bubblewrap" in command:
         require_system("bwrap", bubblewrap() is not None)
     monkeypatch.chdir(runner.places["tmp"])  # default outputs/ go to the scratch directory
+    if "--sandbox bubblewrap" in command:  # tiny_run's cached v1 result is evaluated again, confined
+        for dep in prerequisites(command):
+            assert runner.ensure(dep, capsys) == [], dep
+        result = runner.places["lb"] / "results" / "tiny_run" / "results.json"
+        before = result.stat().st_mtime_ns if result.is_file() else None
     assert runner.ensure(command, capsys) == []
+    if "--sandbox bubblewrap" in command:
+        assert "CONFINED by bubblewrap" in runner.output[command] and result.is_file()
+        assert result.stat().st_mtime_ns != before
     check = written(runner.places).get(command)
     assert check is None or check(), command

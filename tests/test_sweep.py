@@ -26,6 +26,17 @@ def crowdbench(*args: str, cwd: Path) -> subprocess.CompletedProcess:
                           capture_output=True, text=True, timeout=600)
 
 
+def in_process(capsys, *args: str) -> subprocess.CompletedProcess:
+    """``crowdbench submit`` / ``leaderboard`` in this interpreter (neither composes with Hydra's global state):
+    the 4-6 s of a fresh interpreter's imports saved per call."""
+    from crowdbench.cli import main
+
+    capsys.readouterr()
+    rc = main(list(args))
+    out = capsys.readouterr()
+    return subprocess.CompletedProcess(["crowdbench", *args], rc, out.out, out.err)
+
+
 def avg_success(run_dir: Path) -> float:
     return json.loads((run_dir / "results.json").read_text())["scenes"]["hotel"]["success_rate"]["mean"]
 
@@ -91,19 +102,19 @@ def test_a_bad_key_fails_the_sweep_before_any_run(tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.xdist_group("basic_sweep")  # one worker builds the module fixture once
-def test_submit_turns_each_finished_run_into_a_submission(basic_sweep, tmp_path):
-    p = crowdbench("submit", str(basic_sweep), "--root", str(tmp_path), "--entry", "tiny TD3", cwd=tmp_path)
+def test_submit_turns_each_finished_run_into_a_submission(basic_sweep, tmp_path, capsys):
+    p = in_process(capsys, "submit", str(basic_sweep), "--root", str(tmp_path), "--entry", "tiny TD3")
     assert p.returncode == 0, p.stderr
     for seed in (0, 1):
         sub = yaml.safe_load((tmp_path / "submissions" / f"gatedgcn_td3_s{seed}" / "submission.yaml").read_text())
         assert sub["entry"] == "tiny TD3" and sub["seed"] == seed and f"seed={seed}" in sub["overrides"]
     assert f"crowdbench leaderboard --root {tmp_path} --only gatedgcn_td3_s0,gatedgcn_td3_s1" in p.stdout
-    again = crowdbench("submit", str(basic_sweep), "--root", str(tmp_path), "--entry", "tiny TD3", cwd=tmp_path)
+    again = in_process(capsys, "submit", str(basic_sweep), "--root", str(tmp_path), "--entry", "tiny TD3")
     assert again.returncode == 0, again.stderr  # nothing saved is replaced or joined: a second version
     assert {"gatedgcn_td3_v2_s0", "gatedgcn_td3_v2_s1"} <= {d.name for d in (tmp_path / "submissions").iterdir()}
     sub = yaml.safe_load((tmp_path / "submissions" / "gatedgcn_td3_v2_s1" / "submission.yaml").read_text())
     assert sub["entry"] == "tiny TD3 #2"
-    named = crowdbench("submit", str(basic_sweep), "--name", "mine", "--root", str(tmp_path), cwd=tmp_path)
+    named = in_process(capsys, "submit", str(basic_sweep), "--name", "mine", "--root", str(tmp_path))
     assert named.returncode == 0, named.stderr
     sub = yaml.safe_load((tmp_path / "submissions" / "mine_s0" / "submission.yaml").read_text())
     assert sub["entry"] == "gatedgcn_td3 (sweep)"  # the method and the sweep: no shipped row has it
@@ -111,12 +122,12 @@ def test_submit_turns_each_finished_run_into_a_submission(basic_sweep, tmp_path)
 
 @pytest.mark.slow
 @pytest.mark.xdist_group("basic_sweep")  # one worker builds the module fixture once
-def test_submit_of_a_plain_sweep_then_the_leaderboard(basic_sweep, tmp_path):
+def test_submit_of_a_plain_sweep_then_the_leaderboard(basic_sweep, tmp_path, capsys):
     """No --entry: names and labels from the sweep, never those of shipped submissions."""
     shipped = tmp_path / "submissions" / "gatedgcn_td3_s0"
     shipped.mkdir(parents=True)  # a name the defaults would take
     (shipped / "submission.yaml").write_text("name: gatedgcn_td3_s0\nentry: gatedgcn_td3 (sweep)\n")
-    p = crowdbench("submit", str(basic_sweep), "--root", str(tmp_path), cwd=tmp_path)
+    p = in_process(capsys, "submit", str(basic_sweep), "--root", str(tmp_path))
     assert p.returncode == 0, p.stderr
     assert (shipped / "submission.yaml").read_text().startswith("name: gatedgcn_td3_s0\nentry")  # untouched
     subs = {n: yaml.safe_load((tmp_path / "submissions" / n / "submission.yaml").read_text())
@@ -125,7 +136,7 @@ def test_submit_of_a_plain_sweep_then_the_leaderboard(basic_sweep, tmp_path):
     command = p.stdout.split("evaluate them with: ")[1].split()
     assert command[:4] == ["crowdbench", "leaderboard", "--root", str(tmp_path)]
     shutil.rmtree(shipped)  # not a real submission: the leaderboard would reject it
-    board = crowdbench(*command[1:], "--episodes", "1", "--scenes", "hotel", "--tracks", "v1", cwd=tmp_path)
+    board = in_process(capsys, *command[1:], "--episodes", "1", "--scenes", "hotel", "--tracks", "v1")
     assert board.returncode == 0, board.stderr[-2000:]
     assert "gatedgcn_td3 (sweep) #2" in (tmp_path / "README.md").read_text()
     assert (tmp_path / "results" / "gatedgcn_td3_v2_s1" / "results.json").is_file()

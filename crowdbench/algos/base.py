@@ -27,6 +27,9 @@ class Algorithm:
     actor_kind: ClassVar[str] = "deterministic"  # crowdbench/algos/registry.py ACTOR_KINDS
     # checkpoint fields that resuming reads beyond the actor (a submitted checkpoint has none of them)
     resume_fields: ClassVar[tuple[str, ...]] = ("loss",)
+    # keeps transitions across batches (a replay buffer): their observation shape, and so the number of
+    # agents, is then fixed for the run (no train.curriculum_agents; crowdbench/algos/curriculum.py)
+    replays: ClassVar[bool] = False
 
     def __init__(self, cfg: DictConfig, n_agents: int):
         self.cfg, self.a, self.n_agents = cfg, cfg.algo, n_agents

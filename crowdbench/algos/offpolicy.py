@@ -134,6 +134,7 @@ class OffPolicyAlgorithm(Algorithm):
     """Replay buffer, critics and the update; subclasses build the TorchRL loss."""
 
     resume_fields = ("loss", "opt_actor", "opt_critic", "replay_rng")
+    replays = True
     policy_delay = 1
     prepared = True  # the loss reads graphs built once per sampled batch (models/heads.py prepare_batch)
     keep = tuple(KEEP)  # what the replay buffer holds of each transition

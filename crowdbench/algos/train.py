@@ -21,6 +21,7 @@ from tqdm import tqdm
 
 from crowdbench.algos.base import Algorithm
 from crowdbench.algos.checkpoint import FORMAT, CheckpointError, load_checkpoint
+from crowdbench.algos.curriculum import CurriculumError, stage_of, stages, with_agents
 from crowdbench.algos.loggers import close_logger, make_logger
 from crowdbench.algos.multiagent import finished_episodes
 from crowdbench.algos.registry import component
@@ -193,21 +194,32 @@ def _train(cfg: DictConfig, out_dir: Path, resume: bool, progress: bool, probe) 
     if resume:
         state = load_resume_state(cfg, ckpt_path, Algo.resume_fields)
     t = cfg.train
+    plan = stages(cfg)  # [(n_agents, end frames)]: one stage unless train.curriculum_agents is set
+    if len(plan) > 1 and Algo.replays:
+        raise CurriculumError(f"train.curriculum_agents needs an on-policy algorithm (ppo, ippo, mappo): algo="
+                              f"{cfg.algo.name}'s replay buffer holds one agent count's observations")
     tune_allocator()
     torch.manual_seed(cfg.seed)
-    # replay (one robot) or self-play (n agents, one shared-weight policy); progress shaping for training only
-    # InitTracker: the OU noise restarts from zero in every new episode
-    env = make_env(cfg, progress_reward=t.progress_reward, human_dropout=t.human_dropout,
-                   human_thinning=t.get("human_thinning", 0.0),
-                   playback_speeds=t.get("playback_speeds", (1.0,)),
-                   extra=(InitTracker(), RewardSum(in_keys=[(GROUP, "reward")], out_keys=[EPISODE_RETURN]),
-                          *Algo.env_transforms(cfg)))
+
+    def make(n_agents: int):
+        # replay (one robot) or self-play (n agents, one shared-weight policy); progress shaping for training only
+        # InitTracker: the OU noise restarts from zero in every new episode
+        c = with_agents(cfg, n_agents) if cfg.env.name == "selfplay" else cfg
+        return make_env(c, progress_reward=t.progress_reward, human_dropout=t.human_dropout,
+                        human_thinning=t.get("human_thinning", 0.0),
+                        playback_speeds=t.get("playback_speeds", (1.0,)),
+                        extra=(InitTracker(), RewardSum(in_keys=[(GROUP, "reward")], out_keys=[EPISODE_RETURN]),
+                               *Algo.env_transforms(c)))
+
+    stage = stage_of(plan, int(state["frames"]) if state is not None else 0)
+    env = make(plan[stage][0])
     algo = Algo(cfg, env.n_agents)
     # window: (outcome, return) of recently finished episodes
-    start = {"frames": 0, "window": [], "restored": False, "last_probe": 0}
+    start = {"frames": 0, "window": [], "restored": False, "last_probe": 0, "plan": plan, "make": make}
     if state is not None:
         algo.load_state_dict(state)
-        env.sampler.load_state_dict(state["sampler"])
+        if state.get("stage", stage) == stage:  # (saved at a stage's end: the next stage's env starts afresh)
+            env.sampler.load_state_dict(state["sampler"])
         torch.set_rng_state(state["torch_rng"])
         frames = start["frames"] = int(state["frames"])
         algo.updates = int(state["updates"])
@@ -237,18 +249,35 @@ def _loop(cfg, out_dir, env, algo, logger, state, start: dict, progress, probe) 
     remaining = t.total_frames - frames
     if remaining <= 0:
         return {"frames": frames, "updates": algo.updates}
-    collector = Collector(
-        env, algo.collection_policy(), frames_per_batch=t.frames_per_batch, total_frames=remaining,
-        init_random_frames=algo.random_frames(state is not None, restored, frames),
-        auto_register_policy_transforms=False,
-    )
+    plan, make, current = start["plan"], start["make"], {"env": env, "stage": stage_of(start["plan"], frames)}
+
+    def batches():
+        """The collected batches of each remaining stage (train.curriculum_agents): a stage's own env and collector."""
+        first = True
+        for i in range(stage_of(plan, frames), len(plan)):
+            n, end = plan[i]
+            if i != current["stage"]:  # a fresh env (its sampler from the seed), as a resumed run builds it
+                current["env"].close()
+                current["env"], current["stage"] = make(n), i
+                algo.n_agents = n
+            collector = Collector(
+                current["env"], algo.collection_policy(), frames_per_batch=t.frames_per_batch,
+                total_frames=end - frames,
+                init_random_frames=algo.random_frames(state is not None, restored, frames) if first else 0,
+                auto_register_policy_transforms=False,
+            )
+            first = False
+            try:
+                yield from collector
+            finally:
+                collector.shutdown()
 
     def save(wall_time_s: float):
         try:  # what the checkpoint references first (the replay buffer), then the checkpoint, then cleanup
             extra = algo.save_extra(out_dir, frames)
             save_torch_atomic(ckpt_path, {
                 "config": OmegaConf.to_container(cfg, resolve=True), **algo.state_dict(), **extra,
-                "sampler": env.sampler.state_dict(), "torch_rng": torch.get_rng_state(),
+                "sampler": current["env"].sampler.state_dict(), "stage": current["stage"], "torch_rng": torch.get_rng_state(),
                 "frames": frames, "updates": algo.updates, "wall_time_s": wall_time_s, "last_probe": last_probe,
                 "window": [[o for o, _ in window], [r for _, r in window]], "format": FORMAT,
             })
@@ -267,8 +296,9 @@ def _loop(cfg, out_dir, env, algo, logger, state, start: dict, progress, probe) 
     last_ckpt, start = frames, time.time()
     elapsed0 = float(state["wall_time_s"]) if state is not None else warm_s
     stats: dict = {}
+    collected = batches()
     try:
-        for batch in collector:
+        for batch in collected:
             eta.collected(batch.numel())
             frames += batch.numel()
             outcome, ret = finished_episodes(batch, EPISODE_RETURN)  # per agent episode
@@ -285,6 +315,8 @@ def _loop(cfg, out_dir, env, algo, logger, state, start: dict, progress, probe) 
                 }
                 logs.update(stats)
             logs["updates"] = algo.updates
+            if t.get("curriculum_agents"):  # the agent curriculum's stage
+                logs["agents"] = algo.n_agents
             logs["wall_time_s"] = wall = elapsed0 + time.time() - start
             if probe is not None and frames - last_probe >= t.probe_every:
                 logs.update(probe(actor))
@@ -307,5 +339,5 @@ def _loop(cfg, out_dir, env, algo, logger, state, start: dict, progress, probe) 
     finally:
         stop.restore()
         bar.close()
-        collector.shutdown()
+        collected.close()
     return {"frames": frames, "updates": algo.updates, **stats, **({"interrupted": True} if stop.requested else {})}
