@@ -27,7 +27,7 @@ def stages(cfg: DictConfig) -> list[tuple[int, int]]:
     if len(agents) != len(ends):
         raise CurriculumError(f"train.curriculum_agents has {len(agents)} entries and train.curriculum_frames "
                               f"{len(ends)}: one end (in frames) per stage")
-    if cfg.env.name != "selfplay":
+    if "n_agents" not in cfg.env:  # an env whose agents all learn (env.n_agents)
         raise CurriculumError(f"train.curriculum_agents needs env=selfplay (agents that learn), got env={cfg.env.name}")
     fpb = int(t.frames_per_batch)
     for i, end in enumerate(ends):

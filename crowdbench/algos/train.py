@@ -204,7 +204,7 @@ def _train(cfg: DictConfig, out_dir: Path, resume: bool, progress: bool, probe) 
     def make(n_agents: int):
         # replay (one robot) or self-play (n agents, one shared-weight policy); progress shaping for training only
         # InitTracker: the OU noise restarts from zero in every new episode
-        c = with_agents(cfg, n_agents) if cfg.env.name == "selfplay" else cfg
+        c = with_agents(cfg, n_agents) if "n_agents" in cfg.env else cfg
         return make_env(c, progress_reward=t.progress_reward, human_dropout=t.human_dropout,
                         human_thinning=t.get("human_thinning", 0.0),
                         playback_speeds=t.get("playback_speeds", (1.0,)),
