@@ -34,8 +34,6 @@ def stages(cfg: DictConfig) -> list[tuple[int, int]]:
         if end % fpb or end <= (ends[i - 1] if i else 0):
             raise CurriculumError(f"train.curriculum_frames must increase and be multiples of train.frames_per_batch "
                                   f"({fpb}), got {ends}")
-    if any(n < 1 for n in agents):
-        raise CurriculumError(f"train.curriculum_agents must be positive, got {agents}")
     plan = list(zip(agents, ends, strict=True)) + [(int(cfg.env.n_agents), int(t.total_frames))]
     out, begin = [], 0
     for n, end in plan:  # the stages that start before total_frames, the last cut there

@@ -215,7 +215,7 @@ def _train(cfg: DictConfig, out_dir: Path, resume: bool, progress: bool, probe) 
     env = make(plan[stage][0])
     algo = Algo(cfg, env.n_agents)
     # window: (outcome, return) of recently finished episodes
-    start = {"frames": 0, "window": [], "restored": False, "last_probe": 0, "plan": plan, "make": make}
+    start = {"frames": 0, "window": [], "restored": False, "last_probe": 0, "plan": plan, "stage": stage, "make": make}
     if state is not None:
         algo.load_state_dict(state)
         if state.get("stage", stage) == stage:  # (saved at a stage's end: the next stage's env starts afresh)
@@ -249,12 +249,12 @@ def _loop(cfg, out_dir, env, algo, logger, state, start: dict, progress, probe) 
     remaining = t.total_frames - frames
     if remaining <= 0:
         return {"frames": frames, "updates": algo.updates}
-    plan, make, current = start["plan"], start["make"], {"env": env, "stage": stage_of(start["plan"], frames)}
+    plan, make, current = start["plan"], start["make"], {"env": env, "stage": start["stage"]}
 
     def batches():
         """The collected batches of each remaining stage (train.curriculum_agents): a stage's own env and collector."""
         first = True
-        for i in range(stage_of(plan, frames), len(plan)):
+        for i in range(current["stage"], len(plan)):
             n, end = plan[i]
             if i != current["stage"]:  # a fresh env (its sampler from the seed), as a resumed run builds it
                 current["env"].close()
