@@ -44,10 +44,10 @@ from pathlib import Path
 import torch
 
 from crowdbench.baselines.straight import StraightToGoal
-from crowdbench.envs.core import RUNNING
 from crowdbench.envs.crowdnav import CrowdNavConfig
 from crowdbench.envs.factory import crowdnav_world
-from crowdbench.envs.policy import obs_tensordict
+from crowdbench.envs.observation import obs_tensordict
+from crowdbench.envs.rules import RUNNING
 from crowdbench.envs.torchrl_env import CrowdEnv
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -241,7 +241,7 @@ import configparser, json, logging, sys, time
 import numpy as np
 logging.disable(logging.INFO)
 from crowd_sim.envs.crowd_sim import CrowdSim
-from crowd_sim.envs.policy.orca import ORCA
+from crowd_sim.envs.observation.orca import ORCA
 from crowd_sim.envs.utils.action import ActionXY
 from crowd_sim.envs.utils.robot import Robot
 

@@ -27,7 +27,7 @@ import torch
 from crowdbench import policies
 from crowdbench.envs.protocol import EVAL_SCENES
 from crowdbench.leaderboard.sandbox import Limits, bubblewrap
-from crowdbench.leaderboard.schema import read_submission
+from crowdbench.leaderboard.submission import read_submission
 from crowdbench.leaderboard.tracks import TRACKS, evaluate_track
 from crowdbench.leaderboard.worker import WorkerPolicy
 

@@ -35,7 +35,7 @@ import yaml
 
 from crowdbench.baselines.straight import StraightToGoal
 from crowdbench.envs.factory import replay_world
-from crowdbench.envs.policy import obs_tensordict
+from crowdbench.envs.observation import obs_tensordict
 from crowdbench.models import make_encoder
 from crowdbench.models.graph import build_graph, cap_binding
 from crowdbench.models.heads import (

@@ -19,9 +19,9 @@ import os
 import torch
 from bench_crowd import timed  # (run as a script: benchmarks/ is on the path)
 
-from crowdbench.envs.core import RUNNING, SimConfig
 from crowdbench.envs.factory import replay_world
 from crowdbench.envs.humans.reactive_replay import ReactiveParams
+from crowdbench.envs.rules import RUNNING, SimConfig
 from crowdbench.envs.torchrl_env import CrowdEnv
 
 

@@ -19,8 +19,8 @@ from omegaconf import OmegaConf
 from crowdbench.algos.checkpoint import load_checkpoint
 from crowdbench.algos.registry import component
 from crowdbench.baselines.straight import StraightToGoal
-from crowdbench.envs.core import COLLISION
 from crowdbench.envs.factory import replay_env
+from crowdbench.envs.rules import COLLISION
 from crowdbench.models.heads import prepare_batch
 
 NEVER = 10**6

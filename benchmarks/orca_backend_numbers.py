@@ -23,7 +23,7 @@ CROWDNAV_TRACKS = ("crowdnav-circle5", "crowdnav-circle20", "crowdnav-square5")
 def compare(entry: str, track: str, backend: str) -> list[str]:
     from crowdbench.envs.factory import sim_config
     from crowdbench.leaderboard.harness import OUTCOME_CHAR, build_policy
-    from crowdbench.leaderboard.schema import read_submission
+    from crowdbench.leaderboard.submission import read_submission
     from crowdbench.leaderboard.tracks import TRACKS, track_config
     from crowdbench.protocols.crowdnav import evaluate_crowdnav
 

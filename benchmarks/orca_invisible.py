@@ -18,9 +18,9 @@ import torch
 
 
 def evaluate(setting: str, margin: float, horizon: float) -> dict:
+    from crowdbench.app import protocol_of
     from crowdbench.baselines.orca import ORCA
     from crowdbench.cli import compose
-    from crowdbench.cli_eval import protocol_of
     from crowdbench.protocols.crowdnav import evaluate_crowdnav
 
     scenario, n = setting.split("_n")

@@ -54,7 +54,7 @@ RECIPES = {
 
 def probe_all(cfg, scenes, episodes: int, spent: list[float]):
     from crowdbench.algos.checkpoint import LearnedPolicy
-    from crowdbench.envs.core import SimConfig
+    from crowdbench.envs.rules import SimConfig
     from crowdbench.protocols.replay import evaluate
 
     def probe(actor) -> dict[str, float]:

@@ -6,7 +6,7 @@ import sys
 from pathlib import Path
 
 from crowdbench import policies
-from crowdbench.cli_eval import (  # the evaluation half of the command line
+from crowdbench.app import (  # the evaluation half of the command line
     Interrupted,
     UsageError,
     check_config,
@@ -25,7 +25,7 @@ BASELINES = policies.NAMES  # the registry's built-in policies
 
 
 def cmd_eval(overrides: list[str]) -> int:
-    from crowdbench.envs.core import check_seed
+    from crowdbench.envs.rules import check_seed
 
     cfg = compose(overrides)
     check_config(cfg)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from crowdbench.cli_eval import (
+from crowdbench.app import (
     Interrupted,
     UsageError,
     check_config,

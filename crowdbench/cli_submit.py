@@ -16,7 +16,7 @@ from pathlib import Path
 
 import yaml
 
-from crowdbench.cli_eval import UsageError
+from crowdbench.app import UsageError
 
 # overrides already spelt by the run's name (method = encoder + algorithm) or that separate seeds of a row
 NAMED_KEYS = ("seed", "method", "experiment", "encoder", "algo", "out", "hydra/launcher")

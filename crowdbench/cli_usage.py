@@ -99,7 +99,7 @@ def hydra_flags(command: str, overrides: list[str]) -> int:
     nothing is trained or evaluated (Hydra prints and returns before calling the task)."""
     import hydra
 
-    from crowdbench.cli_eval import UsageError
+    from crowdbench.app import UsageError
     from crowdbench.compose import compose, normalise
 
     args, what = COMMANDS[command]

@@ -25,7 +25,7 @@ def run_value(cfg, out: Path, overrides: list[str], evaluate=None, resume: bool 
     policy = policy_from_checkpoint(out / "checkpoint.pt")
     t0 = time.perf_counter()
     if evaluate is None:
-        from crowdbench.cli_eval import run_protocol as evaluate
+        from crowdbench.app import run_protocol as evaluate
     results = evaluate(policy, cfg, out, overrides)
     stats["eval_s"] = time.perf_counter() - t0
     (out / "train_stats.json").write_text(json.dumps(stats, indent=1, default=float))

@@ -6,7 +6,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from crowdbench.cli_eval import UsageError
+from crowdbench.app import UsageError
 
 CONFIG_DIR = Path(__file__).resolve().parent / "conf"
 

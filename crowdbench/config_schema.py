@@ -15,9 +15,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from crowdbench.config_fields import bounded
 from crowdbench.envs.humans.reactive import CROWDS
 from crowdbench.envs.humans.reactive_replay import MODELS as REACTIVE_MODELS
-from crowdbench.schema_fields import bounded
 
 FRAMES = ("rotate", "translate", "world")
 SEED_BOUNDS = {"ge": 0, "lt": 2**63}
@@ -27,7 +27,7 @@ MAX_ENV_BATCH = 65536  # 256x the largest recipe's (experiment=ppo)
 # ------------------------------------------------------------------------------------------------ env
 @dataclass
 class SimEnvConfig:
-    """The simulator settings every env shares (crowdbench/envs/core.py ``SimConfig``)."""
+    """The simulator settings every env shares (crowdbench/envs/rules.py ``SimConfig``)."""
 
     name: str = bounded("replay", choices=("replay",))
     # parallel environments for training; bounded so that a typo (1e8) is an error, not GBs of tensors
@@ -256,7 +256,7 @@ ENCODER_SCHEMAS: dict[str, type] = {"gatedgcn": GatedGCNConfig, "gcn": GCNConfig
 # ------------------------------------------------------------------------------ the other groups, root
 @dataclass
 class EvalConfig:
-    """``eval`` (the protocol's scenes are checked by name in crowdbench/cli_eval.py ``eval_options``)."""
+    """``eval`` (the protocol's scenes are checked by name in crowdbench/app.py ``eval_options``)."""
 
     scenes: list[str] = field(default_factory=lambda: ["students003", "zara2", "hotel", "eth"],
                               metadata={"min_len": 1})

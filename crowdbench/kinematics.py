@@ -55,7 +55,7 @@ def heading_to(goal: torch.Tensor, pos: torch.Tensor, heading: torch.Tensor) -> 
 def predict_observation(robot, humans, humans_mask, action, dt: float, v_max: float):
     """The observation ``dt`` seconds ahead if the robot moves with ``action`` and every observed
     human keeps its velocity (robot-relative frame, axes kept): ``robot [*, 6]`` (``[px, py, vx, vy, gx,
-    gy]``, crowdbench/envs/policy.py), ``humans [*, M, 4]`` (``[px, py, vx, vy]``), ``humans_mask [*, M]``.
+    gy]``, crowdbench/envs/observation.py), ``humans [*, M, 4]`` (``[px, py, vx, vy]``), ``humans_mask [*, M]``.
 
     The robot stays at the origin with velocity ``a`` (:func:`clip_speed`, as the simulator clips it),
     the goal moves by ``-a dt`` and each human by ``(v_h - a) dt``; the mask is unchanged."""

@@ -50,7 +50,7 @@ def from_checkpoint(path: Path | str):
 
 
 def build(name: str, cfg=None, overrides: dict | None = None):
-    """A :class:`~crowdbench.envs.policy.Policy`: one of :data:`NAMES` or a checkpoint path."""
+    """A :class:`~crowdbench.envs.observation.Policy`: one of :data:`NAMES` or a checkpoint path."""
     if name in NAMES:
         kwargs = params(name, cfg, overrides)
         try:

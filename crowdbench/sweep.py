@@ -44,7 +44,7 @@ def task(cfg: DictConfig) -> dict:
     failed run (bad value, crash, ``SystemExit``) does not stop the sweep."""
     from hydra.core.hydra_config import HydraConfig
 
-    from crowdbench.cli_eval import UsageError
+    from crowdbench.app import UsageError
     from crowdbench.cli_run import run_one
     from crowdbench.sweep_check import finished
 
@@ -157,7 +157,7 @@ def multirun(overrides: list[str]) -> int:
     ``outputs/sweep-<time>``."""
     import hydra
 
-    from crowdbench.cli_eval import Interrupted, UsageError
+    from crowdbench.app import Interrupted, UsageError
     from crowdbench.compose import CONFIG_DIR, normalise
     from crowdbench.sweep_check import check_sweep
 

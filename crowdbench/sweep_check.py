@@ -30,7 +30,7 @@ def sweep_jobs(overrides: list[str]) -> tuple[list[list[str]], dict]:
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import HydraException
 
-    from crowdbench.cli_eval import UsageError
+    from crowdbench.app import UsageError
     from crowdbench.compose import CONFIG_DIR, hydra_message
 
     parser = OverridesParser.create()
@@ -51,7 +51,7 @@ def sweep_jobs(overrides: list[str]) -> tuple[list[list[str]], dict]:
 def check_sweep(overrides: list[str], sweep_dir: Path, resume: bool) -> int:
     """Refuse (``UsageError``) a sweep that Hydra would fail part-way or that would overwrite runs in
     ``sweep_dir``; return the number of jobs."""
-    from crowdbench.cli_eval import UsageError
+    from crowdbench.app import UsageError
 
     jobs, hydra = sweep_jobs(overrides)
     if str(hydra["sweep"].get("subdir")) != JOB_SUBDIR:
@@ -107,7 +107,7 @@ def finished(job_dir: Path) -> dict | None:
 
 
 def check_job_dirs(sweep_dir: Path, jobs: list[list[str]], resume: bool) -> None:
-    from crowdbench.cli_eval import UsageError
+    from crowdbench.app import UsageError
 
     if not sweep_dir.is_dir():
         return

@@ -12,7 +12,7 @@ from crowdbench.algos.registry import entry, names, register_algorithm, unregist
 from crowdbench.algos.td3 import TD3, TD3Config
 from crowdbench.algos.train import train
 from crowdbench.cli import compose, main
-from crowdbench.schema_fields import bounded
+from crowdbench.config_fields import bounded
 
 TINY = ["train.pretrain=null", "env.batch=8", "train.frames_per_batch=64", "train.checkpoint_every=64", "eval.episodes=2",
         "eval.scenes=[hotel]", "train.probe_every=100000"]

@@ -56,7 +56,7 @@ def test_default_output_dirs_started_in_one_second_differ(tmp_path, monkeypatch)
 
     from omegaconf import OmegaConf
 
-    from crowdbench.cli_eval import output_dir
+    from crowdbench.app import output_dir
 
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(time, "strftime", lambda fmt: "20261201-170205")

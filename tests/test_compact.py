@@ -60,7 +60,7 @@ def test_compacted_training_path_equals_the_raw_encoder(real_obs, name):
 def test_prepare_batch_serves_the_compacted_keys(real_obs):
     from tensordict import TensorDict
 
-    from crowdbench.envs.policy import OBS
+    from crowdbench.envs.observation import OBS
 
     comp = make_encoder("sarl", compact=True, **SMALL["sarl"])
     td = TensorDict({OBS: TensorDict(dict(zip(("robot", "humans", "humans_mask"), real_obs, strict=True)),

@@ -11,7 +11,7 @@ from crowdbench.algos.curriculum import CurriculumError, stage_of, stages
 from crowdbench.algos.ppo import PPO
 from crowdbench.algos.train import train
 from crowdbench.cli import compose, main
-from crowdbench.envs.policy import OBS
+from crowdbench.envs.observation import OBS
 
 SELFPLAY = ["experiment=selfplay", "method=gatedgcn_mappo", "env.batch=2", "train.frames_per_batch=32",
             "train.max_minutes=null", "env.n_agents=3", "env.eval_n_agents=[3]", "env.eval_episodes=2"]

@@ -11,7 +11,7 @@ import pytest
 from crowdbench.leaderboard import run
 from crowdbench.leaderboard.entries import entry_problems
 from crowdbench.leaderboard.render import group_results
-from crowdbench.leaderboard.schema import SubmissionError, read_submission
+from crowdbench.leaderboard.submission import SubmissionError, read_submission
 from tests.test_isolation import add_straight
 
 FAST = {"episodes": 3, "scenes": ["hotel"], "tracks": ["v1"]}

@@ -12,7 +12,7 @@ import pytest
 from crowdbench.leaderboard import run, wire
 from crowdbench.leaderboard import worker as worker_mod
 from crowdbench.leaderboard.sandbox import Limits
-from crowdbench.leaderboard.schema import SubmissionError, read_submission
+from crowdbench.leaderboard.submission import SubmissionError, read_submission
 from crowdbench.leaderboard.worker import WorkerPolicy
 from tests.test_isolation import ENCODER, add_straight, make_learned
 

@@ -14,7 +14,7 @@ import torch
 from worlds import SMALL_ENCODERS
 
 from crowdbench import kinematics
-from crowdbench.envs import core
+from crowdbench.envs import rules
 from crowdbench.models import ENCODERS, make_encoder
 from crowdbench.models.encoder import RAW_FIELDS, SplitEncoder, forward_prepared, prep_fields, prepare, splits
 from crowdbench.models.heads import lookahead, prepared_keys
@@ -81,7 +81,7 @@ def test_no_module_probes_the_encoder_interface_with_hasattr():
 
 def test_kinematics_are_one_module():
     for name in ("clip_speed", "to_local", "to_world", "heading_to"):
-        assert getattr(core, name) is getattr(kinematics, name)  # re-exported, not redefined
+        assert getattr(rules, name) is getattr(kinematics, name)  # re-exported, not redefined
     assert lookahead is kinematics.predict_observation
 
 

@@ -14,14 +14,14 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "crowdbench"
 # module or package (its first name under crowdbench) -> layer; a module may import its own layer and those below
 LAYERS = {
-    0: ("numerics", "outputs", "schema_fields", "metric_table", "kinematics"),
+    0: ("numerics", "outputs", "config_fields", "metric_table", "kinematics"),
     1: ("data",),
     2: ("envs",),
     3: ("models", "baselines"),
     4: ("algos",),
     5: ("protocols", "policies", "social_metrics", "viz", "config_schema", "config_check"),
     6: ("leaderboard",),
-    7: ("cli_eval", "compose", "cli_run", "cli_value", "cli_submit", "cli_usage", "sweep", "sweep_check", "api"),
+    7: ("app", "compose", "cli_run", "cli_value", "cli_submit", "cli_usage", "sweep", "sweep_check", "api"),
     8: ("cli", "entry", "__main__"),
 }
 LAYER = {name: layer for layer, names in LAYERS.items() for name in names}

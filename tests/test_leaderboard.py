@@ -277,7 +277,7 @@ def test_fingerprint_covers_every_module_an_evaluation_loads(tmp_path):
     # the learned entry's policy is built and run in its worker process: load it here as the worker does
     script = ("import json, sys; from pathlib import Path; from crowdbench.leaderboard import run; "
               "from crowdbench.leaderboard.loading import dummy_obs, learned_policy; "
-              "from crowdbench.leaderboard.schema import read_submission; "
+              "from crowdbench.leaderboard.submission import read_submission; "
               f"assert run({str(root)!r}, episodes=1, scenes=['hotel'], log=lambda m: None) == 0; "
               f"learned_policy(read_submission(Path({str(root)!r}) / 'submissions' / 'toy')).act(dummy_obs()); "
               "print(json.dumps(sorted(m.__file__ for n, m in sys.modules.items() "
@@ -290,7 +290,7 @@ def test_fingerprint_covers_every_module_an_evaluation_loads(tmp_path):
     # published lists' hashes (protocols/lists.py: a check that can refuse an evaluation, never change a number)
     # and the plots' colours (viz/palette.py: drawn after the evaluation, never a number)
     # and what the harness's submission checks import to name things: the algorithm registry (which imports
-    # every algorithm's training code: leaderboard/schema.py) and the config schema's FRAMES (loading.py)
+    # every algorithm's training code: leaderboard/submission.py) and the config schema's FRAMES (loading.py)
     assert {p.relative_to(PACKAGE_DIR).parts[0] for p in loaded - hashed} == {"leaderboard", "protocols", "viz",
                                                                               "algos", "config_schema.py", "models"}
     # of the models, only the centralised critics that MAPPO / MATD3's training imports (never an actor)
@@ -766,22 +766,22 @@ def test_submit_validates_before_writing(tmp_path, capsys, monkeypatch):
         err = capsys.readouterr().err.strip()
         assert problem in err and "\n" not in err and len(err) < 500, (args, err)
         assert files() == before, args  # nothing written, inside or outside the leaderboard
-    from crowdbench.leaderboard import SubmissionError, schema
+    from crowdbench.leaderboard import SubmissionError, submission
 
     def fail(sub_dir):
         raise SubmissionError(sub_dir / "submission.yaml", "checkpoint", "read back failed")
 
-    monkeypatch.setattr(schema, "read_submission", fail)
+    monkeypatch.setattr(submission, "read_submission", fail)
     assert cli_main(["submit", str(run_dir), "--name", "ok", "--entry", "Mine", "--root", str(root)]) == 2
     assert "read back failed" in capsys.readouterr().err and not (root / "submissions" / "ok").exists()
     # directory names follow the same rule when the harness reads them
     monkeypatch.undo()
     d = write_yaml(root, "bad name", "name: bad name\nkind: baseline\npolicy: straight\nauthors: [a]\n")
     with pytest.raises(SubmissionError, match=r"field 'name': .*not a valid submission name"):
-        schema.read_submission(d)
+        submission.read_submission(d)
     os.rename(d, d.parent / "..x")
     with pytest.raises(SubmissionError, match=r"field 'name': .*not a valid submission name"):
-        schema.read_submission(d.parent / "..x")
+        submission.read_submission(d.parent / "..x")
 
 
 def test_a_corrupted_scene_file_is_one_line_and_writes_nothing(tmp_path, monkeypatch):

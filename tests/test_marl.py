@@ -11,9 +11,9 @@ from torchrl.envs.utils import check_env_specs
 from crowdbench.algos.ppo import ADVANTAGE, VALUE, VALUE_TARGET
 from crowdbench.algos.registry import component
 from crowdbench.cli import compose
-from crowdbench.envs.core import RUNNING, SUCCESS
 from crowdbench.envs.factory import make_env, selfplay_world
-from crowdbench.envs.policy import GROUP, OBS
+from crowdbench.envs.observation import GROUP, OBS
+from crowdbench.envs.rules import RUNNING, SUCCESS
 from crowdbench.envs.selfplay import SelfPlayConfig
 from crowdbench.envs.transforms import SCENE, SCENE_MASK, SceneView
 from crowdbench.models.scene_critic import SceneCritic, SceneQ

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from crowdbench import metric_table
-from crowdbench.envs.core import SUCCESS, SimConfig
+from crowdbench.envs.rules import SUCCESS, SimConfig
 from crowdbench.metric_table import (
     COUNT,
     IN_AVERAGE,

@@ -12,7 +12,7 @@ import yaml
 from tensordict import TensorDict
 from worlds import SMALL_ENCODERS, students_obs
 
-from crowdbench.envs.policy import ACTION, OBS
+from crowdbench.envs.observation import ACTION, OBS
 from crowdbench.models import ENCODERS, make_encoder
 from crowdbench.models.graph import build_graph, cap_binding
 from crowdbench.models.heads import (

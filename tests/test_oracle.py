@@ -14,8 +14,8 @@ from crowdbench.baselines.orca import ORCA
 from crowdbench.baselines.straight import StraightToGoal
 from crowdbench.cli import main as cli_main
 from crowdbench.data.scenes import Scene
-from crowdbench.envs.core import COLLISION, SUCCESS, SimConfig
-from crowdbench.envs.policy import obs_tensordict
+from crowdbench.envs.observation import obs_tensordict
+from crowdbench.envs.rules import COLLISION, SUCCESS, SimConfig
 
 
 def crossing_scene(T: int = 130, crossings=(16, 20, 24)) -> Scene:

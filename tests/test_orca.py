@@ -12,8 +12,8 @@ from worlds import replay_sim, reset_v1
 from crowdbench.baselines.orca import ORCA
 from crowdbench.baselines.straight import StraightToGoal
 from crowdbench.data import load_scene
-from crowdbench.envs.core import COLLISION, RUNNING, SUCCESS
-from crowdbench.envs.policy import obs_tensordict
+from crowdbench.envs.observation import obs_tensordict
+from crowdbench.envs.rules import COLLISION, RUNNING, SUCCESS
 
 DT, V_MAX, RADII = 0.25, 1.0, 0.2 + 0.1
 

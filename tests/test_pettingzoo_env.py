@@ -11,8 +11,8 @@ from pettingzoo.test import parallel_api_test, parallel_seed_test
 from worlds import replay_sim, reset_v1
 
 from crowdbench.data.scenes import load_scene
-from crowdbench.envs.core import SimConfig
 from crowdbench.envs.factory import replay_parallel_env
+from crowdbench.envs.rules import SimConfig
 
 AGENT = "robot_0"
 

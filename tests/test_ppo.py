@@ -13,7 +13,7 @@ from crowdbench.algos.ppo import ADVANTAGE, PPO, VALUE, VALUE_TARGET
 from crowdbench.algos.train import train
 from crowdbench.cli import compose
 from crowdbench.envs.factory import make_env
-from crowdbench.envs.policy import ACTION, GROUP
+from crowdbench.envs.observation import ACTION, GROUP
 from crowdbench.protocols.replay import evaluate
 
 SMALL = ["train.pretrain=null", "algo=ppo", "encoder=mlp", "encoder.dim=16", "encoder.hidden=[32]", "env.batch=4"]

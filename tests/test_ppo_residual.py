@@ -17,7 +17,7 @@ from crowdbench.algos.registry import component as algorithm_class
 from crowdbench.algos.train import train
 from crowdbench.cli import compose
 from crowdbench.envs.factory import make_env
-from crowdbench.envs.policy import ACTION
+from crowdbench.envs.observation import ACTION
 from crowdbench.kinematics import clip_speed
 from crowdbench.models.heads import OBS_KEYS
 from crowdbench.policies import build

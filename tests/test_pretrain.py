@@ -11,7 +11,7 @@ from crowdbench.algos.pretrain import COMPLETE, EPISODE, RETURN, collect_demonst
 from crowdbench.algos.registry import component
 from crowdbench.cli import compose, main
 from crowdbench.envs.factory import make_env
-from crowdbench.envs.policy import ACTION, GROUP, OBS
+from crowdbench.envs.observation import ACTION, GROUP, OBS
 from crowdbench.models.heads import STATE_ACTION_VALUE, prepare_batch
 
 TINY = ["env.batch=8", "train.frames_per_batch=64", "algo.warmup=128", "algo.batch_size=16", "train.utd=0.125",

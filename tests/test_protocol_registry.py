@@ -15,8 +15,8 @@ from test_leaderboard import add_straight
 
 from crowdbench import protocols
 from crowdbench.algos.actors import build_actor
+from crowdbench.app import make_probe
 from crowdbench.cli import compose, main
-from crowdbench.cli_eval import make_probe
 from crowdbench.envs.factory import WORLDS
 from crowdbench.leaderboard import run
 from crowdbench.leaderboard.tracks import TRACK_ORDER, TRACKS, trained_track

@@ -8,10 +8,10 @@ import pytest
 import torch
 
 from crowdbench.data.scenes import Scene, interpolate_tracks, load_scene, pack_slots
-from crowdbench.envs.core import COLLISION, RUNNING, SimConfig
 from crowdbench.envs.factory import replay_world
 from crowdbench.envs.humans.reactive_replay import ReactiveParams, ReactiveReplayCrowd, track_links
 from crowdbench.envs.humans.rvo2_reference import rvo2_velocities
+from crowdbench.envs.rules import COLLISION, RUNNING, SimConfig
 
 MODELS = ("orca", "sfm")
 

@@ -18,9 +18,9 @@ from crowdbench.algos.checkpoint import load_checkpoint, policy_from_checkpoint
 from crowdbench.algos.multiagent import agent_transitions, finished_episodes
 from crowdbench.baselines.straight import StraightToGoal
 from crowdbench.cli import compose, main
-from crowdbench.envs.core import COLLISION, RUNNING, SUCCESS
 from crowdbench.envs.factory import make_env, selfplay_env, selfplay_parallel_env
-from crowdbench.envs.policy import GROUP, obs_tensordict
+from crowdbench.envs.observation import GROUP, obs_tensordict
+from crowdbench.envs.rules import COLLISION, RUNNING, SUCCESS
 from crowdbench.envs.selfplay import SelfPlayConfig, _square, episode_set, sample_episodes
 from crowdbench.protocols.selfplay import evaluate_selfplay
 

@@ -7,8 +7,8 @@ import pytest
 import torch
 
 import crowdbench.envs.world as world_mod
-from crowdbench.envs.core import _FAR, RUNNING, StepInfo, outcome_of, segment_min_distance, step_reward
 from crowdbench.envs.factory import selfplay_world
+from crowdbench.envs.rules import _FAR, RUNNING, StepInfo, outcome_of, segment_min_distance, step_reward
 from crowdbench.envs.selfplay import SelfPlayConfig
 from crowdbench.kinematics import advance, to_local, to_world
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from crowdbench.envs.core import COLLISION, SUCCESS, SimConfig
+from crowdbench.envs.rules import COLLISION, SUCCESS, SimConfig
 from crowdbench.metric_table import UNIT, clip, metric_range, spread
 from crowdbench.protocols.engine import aggregate, episode_metrics, format_table, mean_ci
 from crowdbench.social_metrics import (

@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from crowdbench.cli_eval import UsageError
+from crowdbench.app import UsageError
 from crowdbench.cli_submit import submit_run
 from crowdbench.leaderboard import run
 from crowdbench.leaderboard.sandbox import Limits

@@ -14,10 +14,10 @@ from worlds import replay_sim, reset_v1
 from crowdbench.algos.value import ValueModel, ValuePolicy, epsilon, gamma_bar
 from crowdbench.algos.value_train import discounted_returns, last_steps, td_targets
 from crowdbench.data.scenes import load_scene
-from crowdbench.envs.core import RUNNING, SUCCESS, SimConfig
 from crowdbench.envs.crowdnav import CrowdNavConfig
 from crowdbench.envs.factory import crowdnav_world
 from crowdbench.envs.lookahead import action_set, candidates, lookahead_observation, next_humans
+from crowdbench.envs.rules import RUNNING, SUCCESS, SimConfig
 from crowdbench.models.value_nets import (
     CADRLValue,
     LSTMRLValue,
@@ -291,7 +291,7 @@ def test_greedy_evaluation_is_deterministic_and_labelled_privileged():
 def test_memory_keeps_crowdnavs_episodes():
     """Success and collision episodes are stored whole; a timeout only with store_timeouts, without its last step."""
     from crowdbench.algos.value_train import make_memory, store
-    from crowdbench.envs.core import COLLISION, TIMEOUT
+    from crowdbench.envs.rules import COLLISION, TIMEOUT
 
     lengths, outcome = [3, 5, 2], torch.tensor([SUCCESS, TIMEOUT, COLLISION])
     T, B = 5, 3

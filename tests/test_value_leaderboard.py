@@ -15,7 +15,7 @@ from crowdbench.algos.checkpoint import save_checkpoint
 from crowdbench.algos.value import ValueModel
 from crowdbench.cli import compose
 from crowdbench.leaderboard import run
-from crowdbench.leaderboard.schema import SubmissionError, make_submission, read_submission
+from crowdbench.leaderboard.submission import SubmissionError, make_submission, read_submission
 from crowdbench.leaderboard.tracks import TRACK_ORDER, TRACKS
 from tests.test_entries import add_orca
 

@@ -11,8 +11,8 @@ from worlds import replay_sim, reset_v1
 
 from crowdbench.compose import compose
 from crowdbench.data.scenes import load_scene
-from crowdbench.envs.core import SimConfig
 from crowdbench.envs.lookahead import action_set, candidates, lookahead_observation
+from crowdbench.envs.rules import SimConfig
 from crowdbench.envs.scenarios import VAL_EPISODES, ReplayScenario, replay_scene
 
 

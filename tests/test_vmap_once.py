@@ -136,7 +136,7 @@ def test_lookahead_critic_term_needs_no_root_graphs(real_obs, name):
 
     from crowdbench.algos.td3 import TD3
     from crowdbench.cli import compose
-    from crowdbench.envs.policy import OBS
+    from crowdbench.envs.observation import OBS
     from crowdbench.models.heads import prepare_batch
 
     torch.manual_seed(3)

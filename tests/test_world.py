@@ -112,7 +112,7 @@ def test_crowdnav_episodes_are_crowdnavs_cases():
 
 def test_crowdnav_reward_is_crowdnavs():
     """CrowdNav's reward on one step: discomfort (d - 0.2) * 0.5 * 0.25 on the step's minimum gap."""
-    from crowdbench.envs.core import step_reward
+    from crowdbench.envs.rules import step_reward
 
     cfg = CrowdNavConfig()
     end, swept = torch.tensor([0.15, 0.5, 0.1, 0.3]), torch.tensor([0.1, 0.5, 0.05, -0.1])
@@ -124,8 +124,8 @@ def test_crowdnav_reward_is_crowdnavs():
 
 
 def test_bad_settings_seeds_and_options_are_one_line_errors():
-    from crowdbench.envs.core import SimConfig
     from crowdbench.envs.factory import replay_env, replay_parallel_env
+    from crowdbench.envs.rules import SimConfig
 
     for key, value in (("v_max", -1.0), ("dt", 0.0), ("robot_radius", float("nan")), ("human_radius", -0.1),
                        ("sensing_range", 0.0), ("time_limit", 0)):

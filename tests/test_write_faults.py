@@ -48,7 +48,7 @@ def a_run(tmp_path: Path) -> Path:
 def test_checkpoints_and_submissions_get_the_mode_of_any_other_file(tmp_path):
     """L11: a checkpoint was 0600 (mkstemp's) while results and logs follow the umask."""
     from crowdbench.algos.checkpoint import save_checkpoint
-    from crowdbench.leaderboard.schema import make_submission
+    from crowdbench.leaderboard.submission import make_submission
     from crowdbench.outputs import save_torch_atomic
 
     old = os.umask(0o022)

@@ -13,7 +13,7 @@ from torchrl.data import Bounded
 from torchrl.modules import ProbabilisticActor, TanhNormal
 
 from crowdbench.algos.registry import actor_kind
-from crowdbench.envs.policy import ACTION, GROUP
+from crowdbench.envs.observation import ACTION, GROUP
 from crowdbench.kinematics import into_disc
 from crowdbench.models import make_encoder
 from crowdbench.models.graph import unpack_obs

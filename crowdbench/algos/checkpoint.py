@@ -7,7 +7,7 @@ from pathlib import Path
 import torch
 from tensordict import TensorDict
 
-from crowdbench.envs.policy import ACTION, Policy
+from crowdbench.envs.observation import ACTION, Policy
 
 
 class CheckpointError(ValueError):

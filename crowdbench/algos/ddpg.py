@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from torchrl.objectives import DDPGLoss
 
 from crowdbench.algos.offpolicy import NoisyActorConfig, OffPolicyAlgorithm
-from crowdbench.schema_fields import bounded
+from crowdbench.config_fields import bounded
 
 
 @dataclass

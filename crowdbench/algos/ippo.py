@@ -7,7 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from crowdbench.algos.ppo import PPO, PPOConfig
-from crowdbench.schema_fields import bounded
+from crowdbench.config_fields import bounded
 
 
 @dataclass

@@ -18,10 +18,10 @@ from dataclasses import dataclass, field
 from tensordict.nn import TensorDictModule
 
 from crowdbench.algos.ppo import KEEP, PPO, VALUE, PPOConfig
-from crowdbench.envs.policy import GROUP, OBS
+from crowdbench.config_fields import bounded
+from crowdbench.envs.observation import GROUP, OBS
 from crowdbench.envs.transforms import SCENE, SCENE_MASK, SceneView
 from crowdbench.models.scene_critic import SceneCritic
-from crowdbench.schema_fields import bounded
 
 
 @dataclass

@@ -16,11 +16,11 @@ from tensordict.nn import TensorDictModule
 from crowdbench.algos.actors import BASES
 from crowdbench.algos.offpolicy import KEEP
 from crowdbench.algos.td3 import TD3, TD3Config
-from crowdbench.envs.policy import ACTION, GROUP, OBS
+from crowdbench.config_fields import bounded
+from crowdbench.envs.observation import ACTION, GROUP, OBS
 from crowdbench.envs.transforms import SCENE, SCENE_MASK, SceneView
 from crowdbench.models.heads import STATE_ACTION_VALUE
 from crowdbench.models.scene_critic import SceneQ
-from crowdbench.schema_fields import bounded
 
 
 @dataclass

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from tensordict import TensorDict, TensorDictBase
 
-from crowdbench.envs.policy import GROUP
+from crowdbench.envs.observation import GROUP
 
 
 def agent_transitions(batch: TensorDictBase, keep: list) -> TensorDict:

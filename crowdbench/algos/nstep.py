@@ -18,7 +18,7 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDictBase
 
-from crowdbench.envs.policy import GROUP
+from crowdbench.envs.observation import GROUP
 
 STEPS = (GROUP, "steps_to_next_obs")  # the value estimator reads this key (algos/offpolicy.py)
 

@@ -25,7 +25,8 @@ from crowdbench.algos.multiagent import agent_transitions
 from crowdbench.algos.nstep import STEPS, n_step
 from crowdbench.algos.pretrain import DemoCloning, imitate, sync_targets
 from crowdbench.algos.resume import compact_storage, remove_stale_buffers, restore_buffer, save_buffer
-from crowdbench.envs.policy import ACTION, GROUP
+from crowdbench.config_fields import bounded
+from crowdbench.envs.observation import ACTION, GROUP
 from crowdbench.models import make_encoder
 from crowdbench.models.heads import (
     BASE_ACTION,
@@ -36,7 +37,6 @@ from crowdbench.models.heads import (
     critic_module,
     prepare_batch,
 )
-from crowdbench.schema_fields import bounded
 
 # the keys the losses read; everything else the env emits stays out of the replay buffer
 KEEP = [(GROUP, "observation"), (GROUP, "action"), ("next", GROUP, "observation"), ("next", GROUP, "reward"),

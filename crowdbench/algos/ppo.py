@@ -28,11 +28,11 @@ from torchrl.objectives import ClipPPOLoss, ValueEstimators
 from crowdbench.algos.actors import BASES, LOG_PROB, RESIDUAL, residual_distribution
 from crowdbench.algos.base import Algorithm
 from crowdbench.algos.multiagent import agent_transitions
-from crowdbench.envs.policy import ACTION, GROUP
+from crowdbench.config_fields import bounded
+from crowdbench.envs.observation import ACTION, GROUP
 from crowdbench.models import make_encoder
 from crowdbench.models.graph import unpack_obs
 from crowdbench.models.heads import OBS_KEYS, mlp
-from crowdbench.schema_fields import bounded
 
 VALUE = (GROUP, "state_value")
 ADVANTAGE = (GROUP, "advantage")

@@ -27,8 +27,8 @@ from tensordict import TensorDict, TensorDictBase
 
 from crowdbench.algos.multiagent import agent_transitions, finished_episodes
 from crowdbench.algos.nstep import STEPS, n_step
-from crowdbench.envs.core import SUCCESS
-from crowdbench.envs.policy import ACTION, GROUP, OBS
+from crowdbench.envs.observation import ACTION, GROUP, OBS
+from crowdbench.envs.rules import SUCCESS
 from crowdbench.models.heads import BASE_ACTION, OBS_KEYS
 
 EXPERTS = ("orca", "checkpoint")

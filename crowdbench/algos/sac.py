@@ -10,8 +10,8 @@ from torchrl.objectives import SACLoss
 
 from crowdbench.algos.actors import LOG_PROB
 from crowdbench.algos.offpolicy import OffPolicyAlgorithm, OffPolicyConfig
-from crowdbench.envs.policy import ACTION
-from crowdbench.schema_fields import bounded
+from crowdbench.config_fields import bounded
+from crowdbench.envs.observation import ACTION
 
 
 @dataclass

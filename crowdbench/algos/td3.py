@@ -9,7 +9,7 @@ from torchrl.objectives import TD3Loss
 
 from crowdbench.algos.actors import BASES
 from crowdbench.algos.offpolicy import NoisyActorConfig, OffPolicyAlgorithm
-from crowdbench.schema_fields import bounded
+from crowdbench.config_fields import bounded
 
 
 @dataclass

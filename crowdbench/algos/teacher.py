@@ -16,7 +16,7 @@ from tensordict import TensorDictBase
 
 from crowdbench.algos.checkpoint import CheckpointError, load_checkpoint, policy_from_checkpoint
 from crowdbench.envs.lookahead import PRIVILEGED_MODELS, lookahead_observation
-from crowdbench.envs.policy import OBS
+from crowdbench.envs.observation import OBS
 
 
 def _world(env):

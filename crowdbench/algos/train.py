@@ -26,9 +26,9 @@ from crowdbench.algos.loggers import close_logger, make_logger
 from crowdbench.algos.multiagent import finished_episodes
 from crowdbench.algos.registry import component
 from crowdbench.algos.resume import check_resumable, truncate_log
-from crowdbench.envs.core import COLLISION, SUCCESS
 from crowdbench.envs.factory import make_env
-from crowdbench.envs.policy import GROUP
+from crowdbench.envs.observation import GROUP
+from crowdbench.envs.rules import COLLISION, SUCCESS
 from crowdbench.models.perf import tune_allocator
 from crowdbench.outputs import claim_dir, save_torch_atomic
 

@@ -18,10 +18,10 @@ from dataclasses import dataclass
 import torch
 from tensordict import TensorDict
 
+from crowdbench.config_fields import bounded
 from crowdbench.envs.lookahead import MODELS, PRIVILEGED_MODELS, action_set
-from crowdbench.envs.policy import OBS, Policy
+from crowdbench.envs.observation import OBS, Policy
 from crowdbench.models.value_nets import NETS, build_value_net, net_input
-from crowdbench.schema_fields import bounded
 
 
 @dataclass

@@ -24,8 +24,8 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.data.replay_buffers import RandomSampler
 
 from crowdbench.algos.value import ValueModel, epsilon
-from crowdbench.envs.core import COLLISION, RUNNING, SUCCESS, TIMEOUT
 from crowdbench.envs.lookahead import lookahead_observation
+from crowdbench.envs.rules import COLLISION, RUNNING, SUCCESS, TIMEOUT
 from crowdbench.envs.transforms import density_keep
 
 
@@ -169,7 +169,7 @@ def demonstrator(cfg):
 
 def imitation(cfg, model: ValueModel, world, sampler, memory: ReplayBuffer, log) -> dict:
     """Phase 1: ORCA demonstrations -> discounted returns -> V regression."""
-    from crowdbench.envs.policy import obs_tensordict
+    from crowdbench.envs.observation import obs_tensordict
 
     a, t0 = cfg.algo, time.perf_counter()
     orca = demonstrator(cfg)

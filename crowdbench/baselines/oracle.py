@@ -5,8 +5,8 @@ human's position at every grid step. Before the first step of an evaluation batc
 plans all episodes at once with a **space-time beam search** over a discrete set of robot
 velocities, using the simulator's own motion model and swept collision test
 (:class:`~crowdbench.envs.world.World` ``clip_action`` and
-:func:`~crowdbench.envs.core.segment_min_distance`), then replays its plan through the normal
-:class:`~crowdbench.envs.policy.Policy` interface. The simulator and the metrics code are the
+:func:`~crowdbench.envs.rules.segment_min_distance`), then replays its plan through the normal
+:class:`~crowdbench.envs.observation.Policy` interface. The simulator and the metrics code are the
 same as for every other policy, so its numbers are directly comparable — but it is an upper
 bound, not a policy a robot could run: **label it privileged wherever it is shown**.
 
@@ -41,8 +41,8 @@ import math
 import torch
 from tensordict import TensorDict
 
-from crowdbench.envs.core import segment_min_distance
-from crowdbench.envs.policy import OBS, Policy
+from crowdbench.envs.observation import OBS, Policy
+from crowdbench.envs.rules import segment_min_distance
 from crowdbench.envs.world import World
 
 PLANNED_SUCCESS, PLANNED_COLLISION, PLANNED_TIMEOUT = 1, 2, 3

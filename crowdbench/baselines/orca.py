@@ -30,7 +30,7 @@ import pyrvo
 import torch
 from tensordict import TensorDict
 
-from crowdbench.envs.policy import OBS, Policy
+from crowdbench.envs.observation import OBS, Policy
 
 _TWO_PI = 2.0 * math.pi
 PREF_RULES = ("reach", "crowdnav")

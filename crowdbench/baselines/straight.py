@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDict
 
-from crowdbench.envs.policy import OBS, Policy
+from crowdbench.envs.observation import OBS, Policy
 
 
 class StraightToGoal(Policy):

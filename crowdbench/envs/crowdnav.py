@@ -3,7 +3,7 @@ crowd of ORCA (or social-force) humans, with CrowdNav's settings and its test ca
 
 - Geometry and settings (``crowd_nav/configs/env.config``): robot and humans of radius 0.3 m,
   ``v_pref`` 1 m/s, ``dt`` 0.25 s, 25 s limit, discomfort distance 0.2 m, reward 1 / -0.25 /
-  ``(d - 0.2) * 0.5 * dt`` (:func:`~crowdbench.envs.core.step_reward`, ``reward: crowdnav``), an invisible
+  ``(d - 0.2) * 0.5 * dt`` (:func:`~crowdbench.envs.rules.step_reward`, ``reward: crowdnav``), an invisible
   robot by default (humans ignore it), a robot that observes every human.
 - Scenarios: ``circle`` (humans on a 4 m circle, each heading for the opposite point) and ``square``
   (humans crossing a 10 m square between its left and right halves); the robot always goes from
@@ -32,9 +32,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from crowdbench.envs.core import SimConfig, check_seed, int_option
 from crowdbench.envs.crowdnav_cases import CROWDNAV, UnplaceableCase, case_list, crowdnav_case
 from crowdbench.envs.humans.reactive import CROWDS, ORCA_BACKENDS, SFM_BACKENDS, OrcaParams, reactive_crowd
+from crowdbench.envs.rules import SimConfig, check_seed, int_option
 
 SCENARIOS = ("circle", "square")
 HUMAN_MODELS = tuple(CROWDS)

@@ -12,8 +12,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from crowdbench.data.scenes import Scene
-from crowdbench.envs.core import SimConfig
 from crowdbench.envs.humans.replay import NoCrowd, ReplayCrowd
+from crowdbench.envs.rules import SimConfig
 from crowdbench.envs.world import World
 
 REPLAY_HUMANS = ("replay", "reactive_replay")

@@ -13,7 +13,7 @@ next state:
 - ``cv`` (not privileged): every human keeps its current velocity for one step.
 
 The robot's candidate motion and its reward use the world's own operations in the world's order
-(frame rotation, speed clip, swept collision test, :func:`~crowdbench.envs.core.step_reward`), so with
+(frame rotation, speed clip, swept collision test, :func:`~crowdbench.envs.rules.step_reward`), so with
 ``query`` the candidate of the action taken is the step that follows.
 """
 
@@ -24,7 +24,7 @@ import math
 
 import torch
 
-from crowdbench.envs.core import _FAR, RUNNING, segment_min_distance, step_reward
+from crowdbench.envs.rules import _FAR, RUNNING, segment_min_distance, step_reward
 from crowdbench.kinematics import advance, to_local, to_world
 
 MODELS = ("query", "cv")

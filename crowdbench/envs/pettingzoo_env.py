@@ -2,7 +2,7 @@
 
 A thin single-instance view (``B = 1``): no physics of its own, every step is one
 :meth:`World.step` on a ``[1, A, 2]`` action tensor and every observation is one
-:meth:`World.observe` (the layout of :mod:`crowdbench.envs.policy` minus the batch and agent
+:meth:`World.observe` (the layout of :mod:`crowdbench.envs.observation` minus the batch and agent
 dimensions). Agents are ``robot_0 ..`` in the robot protocols and ``agent_0 .. agent_{A-1}`` in
 self-play.
 
@@ -40,7 +40,7 @@ import torch
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
-from crowdbench.envs.core import OUTCOMES, check_seed
+from crowdbench.envs.rules import OUTCOMES, check_seed
 from crowdbench.envs.specs import gym_spaces
 from crowdbench.envs.world import World
 

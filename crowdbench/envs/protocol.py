@@ -23,7 +23,7 @@ from pathlib import Path
 import torch
 
 from crowdbench.data.scenes import check_scene, load_scene
-from crowdbench.envs.core import START_CLEARANCE, SimConfig, check_seed, free_start
+from crowdbench.envs.rules import START_CLEARANCE, SimConfig, check_seed, free_start
 
 PROTOCOL_VERSION = "v1"
 PROTOCOL_DIR = Path(__file__).resolve().parents[1] / "data" / f"protocol_{PROTOCOL_VERSION}"

@@ -20,8 +20,8 @@ import numbers
 import torch
 
 from crowdbench.data.scenes import Scene, load_scene, playback_scene
-from crowdbench.envs.core import START_CLEARANCE, SimConfig, free_start, int_option
 from crowdbench.envs.protocol import TrainSampler
+from crowdbench.envs.rules import START_CLEARANCE, SimConfig, free_start, int_option
 
 VAL_SEED = 2**31 - 1  # the validation stream's seed (training seeds are small integers)
 VAL_EPISODES = 100  # as CrowdNav's validation set

@@ -23,7 +23,7 @@ from dataclasses import dataclass, replace
 import torch
 
 from crowdbench.data.scenes import Scene
-from crowdbench.envs.core import START_CLEARANCE, SimConfig, check_seed, free_start, int_option
+from crowdbench.envs.rules import START_CLEARANCE, SimConfig, check_seed, free_start, int_option
 from crowdbench.envs.world import DONE_AGENTS
 
 SCENARIOS = ("circle", "square", "mixed")

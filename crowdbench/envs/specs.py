@@ -1,4 +1,4 @@
-"""Specs and spaces of the observation layout (``crowdbench.envs.policy``), shared by every env.
+"""Specs and spaces of the observation layout (``crowdbench.envs.observation``), shared by every env.
 
 The replay env and the self-play env expose the same agent group, and their PettingZoo
 versions the same per-agent spaces; only the ``info`` entries differ.
@@ -11,7 +11,7 @@ import torch
 from gymnasium import spaces
 from torchrl.data import Bounded, Categorical, Composite, TensorSpec, Unbounded
 
-from crowdbench.envs.policy import GROUP
+from crowdbench.envs.observation import GROUP
 
 
 def torchrl_specs(B: int, A: int, M: int, v_max: float, info: dict[str, TensorSpec]) -> dict[str, Composite]:

@@ -20,8 +20,8 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Categorical, Unbounded
 from torchrl.envs import EnvBase
 
-from crowdbench.envs.core import COLLISION, RUNNING, SUCCESS, StepInfo
-from crowdbench.envs.policy import GROUP
+from crowdbench.envs.observation import GROUP
+from crowdbench.envs.rules import COLLISION, RUNNING, SUCCESS, StepInfo
 from crowdbench.envs.specs import torchrl_specs
 from crowdbench.envs.world import World
 

@@ -10,7 +10,7 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.envs.transforms import Transform
 
-from crowdbench.envs.policy import GROUP
+from crowdbench.envs.observation import GROUP
 
 _DIST = (GROUP, "info", "goal_dist")
 _REWARD = (GROUP, "reward")

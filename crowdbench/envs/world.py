@@ -39,7 +39,8 @@ from __future__ import annotations
 
 import torch
 
-from crowdbench.envs.core import (
+from crowdbench.envs.humans import Agents
+from crowdbench.envs.rules import (
     _FAR,
     RUNNING,
     TIMEOUT,
@@ -49,7 +50,6 @@ from crowdbench.envs.core import (
     segment_min_distance,
     step_reward,
 )
-from crowdbench.envs.humans import Agents
 from crowdbench.kinematics import advance, clip_speed, heading_to, to_local, to_world
 
 DONE_AGENTS = ("vanish", "obstacle")
@@ -268,7 +268,7 @@ class World:
 
     # ------------------------------------------------------------------ observation
     def observe(self, frame: str | None = None, rows: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
-        """Each agent's view in its own frame (SPEC section 3; layout in :mod:`crowdbench.envs.policy`).
+        """Each agent's view in its own frame (SPEC section 3; layout in :mod:`crowdbench.envs.observation`).
 
         - ``robot`` ``[B, A, 6]``: ``[px, py, vx, vy, gx, gy]`` (position 0 in relative frames);
         - ``humans`` ``[B, A, S, 4]``: ``[px, py, vx, vy]`` of every slot, zero where unobserved;

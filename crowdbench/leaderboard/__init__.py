@@ -21,7 +21,7 @@ from crowdbench.leaderboard.render import (
     render_docs_block,
     render_readme,
 )
-from crowdbench.leaderboard.schema import (
+from crowdbench.leaderboard.submission import (
     DEFAULT_ROOT,
     PACKAGE_DIR,
     REPO_DIR,

@@ -28,8 +28,8 @@ from crowdbench.leaderboard.cache import fingerprint
 from crowdbench.leaderboard.entries import entry_problems
 from crowdbench.leaderboard.harness import LauncherError, _evaluate_all
 from crowdbench.leaderboard.sandbox import DEFAULT_LIMITS, Limits, SandboxError, confinement, sandbox_name
-from crowdbench.leaderboard.schema import DEFAULT_ROOT, SubmissionError, read_submission
 from crowdbench.leaderboard.store import RootBusy, locked, read_cached, write_atomic, write_results
+from crowdbench.leaderboard.submission import DEFAULT_ROOT, SubmissionError, read_submission
 from crowdbench.leaderboard.track_tables import render_tracks, trained_on
 from crowdbench.leaderboard.tracks import TRACK_ORDER, TRACKS, check_tracks
 from crowdbench.protocols import get as protocol

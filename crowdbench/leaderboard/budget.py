@@ -18,7 +18,7 @@ from pathlib import Path
 
 from crowdbench import policies
 from crowdbench.leaderboard.sandbox import Limits
-from crowdbench.leaderboard.schema import baseline_args
+from crowdbench.leaderboard.submission import baseline_args
 from crowdbench.leaderboard.tracks import TRACKS, evaluate_track, track_config
 
 REFERENCE = "orca"

@@ -16,7 +16,7 @@ import json
 from pathlib import Path
 
 from crowdbench.envs.protocol import PROTOCOL_VERSION
-from crowdbench.leaderboard.schema import REPO_DIR, Submission, policy_params
+from crowdbench.leaderboard.submission import REPO_DIR, Submission, policy_params
 from crowdbench.leaderboard.tracks import TRACKS, Track, track_config
 from crowdbench.numerics import describe
 

@@ -13,7 +13,7 @@ import sys
 from importlib import metadata
 from pathlib import Path
 
-from crowdbench.leaderboard.schema import IMPORT_RE, REPO_DIR, Submission, SubmissionError, encoder_files
+from crowdbench.leaderboard.submission import IMPORT_RE, REPO_DIR, Submission, SubmissionError, encoder_files
 from crowdbench.leaderboard.text import short
 
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 import unicodedata
 from collections import Counter
 
-from crowdbench.leaderboard.schema import Submission, SubmissionError
+from crowdbench.leaderboard.submission import Submission, SubmissionError
 from crowdbench.leaderboard.text import short
 
 # letters drawn like Latin ones (Unicode's confusables, the ones a keyboard layout offers)

@@ -32,7 +32,7 @@ from crowdbench.envs.protocol import EVAL_SCENES
 from crowdbench.leaderboard.budget import budget_of
 from crowdbench.leaderboard.cache import HARNESS_VERSION
 from crowdbench.leaderboard.sandbox import DEFAULT_LIMITS, Limits
-from crowdbench.leaderboard.schema import (
+from crowdbench.leaderboard.submission import (
     Submission,
     SubmissionError,
     baseline_args,
@@ -56,7 +56,7 @@ class LauncherError(RuntimeError):
 
 
 def build_policy(sub: Submission, track: Track = TRACKS["v1"], limits: Limits = DEFAULT_LIMITS):
-    """The :class:`~crowdbench.envs.policy.Policy` of a validated submission: a learned one behind its
+    """The :class:`~crowdbench.envs.observation.Policy` of a validated submission: a learned one behind its
     worker process (close it: a context manager), a baseline or the oracle built by the registry with
     ``track``'s env config, as ``crowdbench eval`` with it builds them."""
     if sub.kind == "learned":

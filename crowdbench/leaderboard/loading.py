@@ -9,12 +9,12 @@ import torch
 from crowdbench import policies
 from crowdbench.config_schema import FRAMES
 from crowdbench.leaderboard.encoders import register_encoder
-from crowdbench.leaderboard.schema import Submission, SubmissionError
+from crowdbench.leaderboard.submission import Submission, SubmissionError
 from crowdbench.leaderboard.tracks import trained_track
 
 
 def dummy_obs(batch: int = 2, humans: int = 3):
-    from crowdbench.envs.policy import obs_tensordict
+    from crowdbench.envs.observation import obs_tensordict
 
     g = torch.Generator().manual_seed(0)
     robot = torch.zeros(batch, 1, 6)
@@ -66,7 +66,7 @@ def learned_policy(sub: Submission):
     look = getattr(policy, "lookahead", None)
     if look is not None:  # a value-lookahead policy reads candidates with its observation
         from crowdbench.envs.lookahead import placeholder_candidates
-        from crowdbench.envs.policy import OBS
+        from crowdbench.envs.observation import OBS
 
         for key, value in placeholder_candidates(obs[OBS], look[1], float(cfg["env"].get("dt", 0.25))).items():
             obs.set(OBS + (key,), value)

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 from crowdbench.envs.protocol import EVAL_SCENES, PAPER_SCENES, PROTOCOL_VERSION
 from crowdbench.leaderboard.entries import model_of
-from crowdbench.leaderboard.schema import KINDS, link_problem
 from crowdbench.leaderboard.stats import (  # noqa: F401 - the cells' functions, as render.* for the renderers
     average_cell,
     average_stat,
@@ -18,6 +17,7 @@ from crowdbench.leaderboard.stats import (  # noqa: F401 - the cells' functions,
     scene_cell,
     seeds_cell,
 )
+from crowdbench.leaderboard.submission import KINDS, link_problem
 from crowdbench.leaderboard.text import diff_rows, md  # noqa: F401 - diff_rows: render.diff_rows for --check
 from crowdbench.metric_table import IN_DOCS, IN_README, V1, Metric, columns
 

@@ -8,7 +8,7 @@ Pure rendering of the results the run holds (the cached or fresh results it also
 from): every cell is :func:`~.render.table_cell` / :func:`~.track_tables.group_cell`, the functions of
 ``leaderboard/README.md`` and ``TRACKS.md``, so the page shows their numbers, seeds of one entry grouped
 as there (:func:`~.render.group_results`: mean [95% bootstrap interval], n), ranked as there. Submission text is HTML-escaped
-(:func:`html.escape`) and a ``link`` becomes a link only if it is an http(s) URL (:func:`~.schema.link_problem`).
+(:func:`html.escape`) and a ``link`` becomes a link only if it is an http(s) URL (:func:`~.submission.link_problem`).
 """
 
 from __future__ import annotations
@@ -31,9 +31,9 @@ from crowdbench.leaderboard.render import (
     table_columns,
 )
 from crowdbench.leaderboard.sandbox import DEFAULT_LIMITS, Limits
-from crowdbench.leaderboard.schema import SCHEMA, link_problem
 from crowdbench.leaderboard.site_media import SCENE, entry_media
 from crowdbench.leaderboard.stats import ranked
+from crowdbench.leaderboard.submission import SCHEMA, link_problem
 from crowdbench.leaderboard.track_tables import at_home, group_cell, origin_rank, trained_on
 from crowdbench.leaderboard.tracks import TRACK_ORDER, TRACKS, units
 from crowdbench.metric_table import IN_TRACKS, columns, metric, ordered
@@ -308,7 +308,7 @@ def training_command(data: dict) -> str | None:
 def checkpoint_config(root: Path, name: str) -> str:
     """The config saved in a learned submission's checkpoint, as YAML (loaded with ``weights_only``)."""
     from crowdbench.algos.checkpoint import load_checkpoint
-    from crowdbench.leaderboard.schema import read_submission
+    from crowdbench.leaderboard.submission import read_submission
 
     try:
         cfg = load_checkpoint(read_submission(root / "submissions" / name).checkpoint)["config"]

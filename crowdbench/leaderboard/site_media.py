@@ -58,10 +58,10 @@ def make_media(media: Path, sub_dir: Path, fp: str, n: int, scene: str = SCENE,
                limits: Limits = DEFAULT_LIMITS) -> dict:
     """Evaluate ``n`` episodes of ``scene`` for the submission at ``sub_dir`` into ``media`` (emptied
     first): ``trajectories.png``, ``<scene>_epNNN.gif`` and ``.rrd`` per episode and the manifest, returned.
-    Raises :class:`~.schema.SubmissionError` (or the evaluation's exception) on failure."""
+    Raises :class:`~.submission.SubmissionError` (or the evaluation's exception) on failure."""
     from crowdbench.envs.protocol import load_episodes
     from crowdbench.leaderboard.harness import build_policy
-    from crowdbench.leaderboard.schema import read_submission
+    from crowdbench.leaderboard.submission import read_submission
     from crowdbench.leaderboard.tracks import TRACKS
     from crowdbench.protocols.engine import select_episodes
     from crowdbench.protocols.replay import evaluate

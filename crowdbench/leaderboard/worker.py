@@ -1,7 +1,7 @@
 """A learned submission's policy in a worker process: the harness sends observation batches and
 receives action batches (docs/submitting.md, "What the harness protects").
 
-Harness side, :class:`WorkerPolicy`: a :class:`~crowdbench.envs.policy.Policy` whose ``act`` is a
+Harness side, :class:`WorkerPolicy`: a :class:`~crowdbench.envs.observation.Policy` whose ``act`` is a
 round trip over a pipe (crowdbench/leaderboard/wire.py), every reply bounded in time and checked:
 ``[B, A, 2]`` float32, finite. The worker is a fresh interpreter per job (its own ``sys.modules``:
 two submissions that ship a module of the same name never see each other's), started by
@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from crowdbench.envs.lookahead import PRIVILEGED_MODELS, check_lookahead
-from crowdbench.envs.policy import OBS, Policy, obs_tensordict
+from crowdbench.envs.observation import OBS, Policy, obs_tensordict
 from crowdbench.leaderboard import wire
 from crowdbench.leaderboard.sandbox import (
     DEFAULT_LIMITS,
@@ -219,7 +219,7 @@ class WorkerPolicy(Policy):
 # ---------------------------------------------------------------------------------- worker side
 def _serve(read_fd: int, write_fd: int) -> None:
     from crowdbench.leaderboard.loading import learned_policy
-    from crowdbench.leaderboard.schema import SubmissionError, read_submission
+    from crowdbench.leaderboard.submission import SubmissionError, read_submission
 
     header, _ = wire.recv(read_fd)
     apply_limits(header["memory_gb"], header["cpu_s"], header["file_mb"])

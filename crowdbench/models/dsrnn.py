@@ -25,7 +25,7 @@ consume ``robot_h``; ``h_nodes`` is ``robot_h`` with a node axis of size 1.
 
 What is dropped, and why: DS-RNN's temporal edge RNN, spatial edge RNNs and node RNN
 integrate the observation history, which crowdbench's observation does not carry (one time
-step, ``crowdbench/envs/policy.py``). Without history the RNNs reduce to feed-forward maps,
+step, ``crowdbench/envs/observation.py``). Without history the RNNs reduce to feed-forward maps,
 so they are replaced by the MLPs above. To compensate for the motion cues the spatial RNN
 would extract from past positions, the spatial edge also carries the relative velocity
 (``spatial_velocity: true``; ``false`` is DS-RNN's position-only edge). The faithful version

@@ -70,7 +70,7 @@ from typing import NamedTuple
 
 import torch
 
-from crowdbench.envs.policy import OBS
+from crowdbench.envs.observation import OBS
 
 RADIUS2 = 5.0  # squared edge radius (paper III-A.2)
 DEFAULT_K = 8

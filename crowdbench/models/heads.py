@@ -41,7 +41,7 @@ import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 
-from crowdbench.envs.policy import ACTION, GROUP, OBS
+from crowdbench.envs.observation import ACTION, GROUP, OBS
 from crowdbench.kinematics import predict_observation
 from crowdbench.models.encoder import RAW_FIELDS, forward_prepared, prep_fields, prepare, splits  # noqa: F401
 from crowdbench.models.graph import unpack_obs

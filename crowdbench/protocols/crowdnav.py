@@ -19,7 +19,7 @@ import torch
 from crowdbench.data.scenes import Scene
 from crowdbench.envs.crowdnav import CrowdNavConfig, CrowdNavScenario, crowdnav_crowd, list_digest
 from crowdbench.envs.factory import crowdnav_world, env_name
-from crowdbench.envs.policy import Policy
+from crowdbench.envs.observation import Policy
 from crowdbench.envs.torchrl_env import CrowdEnv
 from crowdbench.numerics import describe
 from crowdbench.protocols.base import Protocol, Track
@@ -115,7 +115,7 @@ def evaluate_crowdnav(policy: Policy, cfg: CrowdNavConfig, settings=None, episod
 
 
 def episode_rows(setting: str, eps: dict, tr: dict, m: dict, cfg: CrowdNavConfig) -> list[dict]:
-    from crowdbench.envs.core import OUTCOMES
+    from crowdbench.envs.rules import OUTCOMES
 
     rows = []
     for b, case in enumerate(eps["case"].tolist()):

@@ -15,10 +15,10 @@ from pathlib import Path
 
 import torch
 
-from crowdbench.envs.core import OUTCOMES, RUNNING, SUCCESS, SimConfig
 from crowdbench.envs.lookahead import lookahead_observation
-from crowdbench.envs.policy import ACTION, OBS, Policy
+from crowdbench.envs.observation import ACTION, OBS, Policy
 from crowdbench.envs.protocol import PAPER_SCENES, PROTOCOL_VERSION
+from crowdbench.envs.rules import OUTCOMES, RUNNING, SUCCESS, SimConfig
 from crowdbench.envs.torchrl_env import CrowdEnv
 from crowdbench.metric_table import (
     ANY,

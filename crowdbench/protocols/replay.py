@@ -11,9 +11,8 @@ from dataclasses import asdict, replace
 from pathlib import Path
 
 from crowdbench.data.scenes import check_scene
-from crowdbench.envs.core import OUTCOMES, SimConfig
 from crowdbench.envs.factory import env_name, replay_humans, replay_world
-from crowdbench.envs.policy import Policy
+from crowdbench.envs.observation import Policy
 from crowdbench.envs.protocol import (
     EVAL_SCENES,
     PAPER_SCENES,
@@ -27,6 +26,7 @@ from crowdbench.envs.protocol import (
     reactive_params,
     v2_humans,
 )
+from crowdbench.envs.rules import OUTCOMES, SimConfig
 from crowdbench.envs.torchrl_env import CrowdEnv
 from crowdbench.metric_table import IN_AVERAGE, in_table
 from crowdbench.numerics import describe
@@ -125,7 +125,7 @@ def evaluate(policy: Policy, scenes=PAPER_SCENES, episodes: int | None = None, o
 
 def scenes_of(cfg, allowed=EVAL_SCENES) -> tuple[list[str], int | None]:
     """``eval.scenes`` (each with a published list, among ``allowed``) and ``eval.episodes`` of ``cfg``."""
-    from crowdbench.envs.core import check_seed
+    from crowdbench.envs.rules import check_seed
 
     check_seed(cfg.seed)
     scenes = list(cfg.eval.scenes) if not isinstance(cfg.eval.scenes, str) else [cfg.eval.scenes]

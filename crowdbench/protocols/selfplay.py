@@ -1,6 +1,6 @@
 """The self-play protocol: a fixed seeded episode set -> batched rollout of all agents -> metrics -> results JSON.
 
-Every agent of every episode acts from the same :class:`~crowdbench.envs.policy.Policy`
+Every agent of every episode acts from the same :class:`~crowdbench.envs.observation.Policy`
 (a learned actor, ORCA or straight-to-goal), called once per step for the ``[E, A]`` agents
 of the ``E`` episodes. Episodes come from :func:`crowdbench.envs.selfplay.episode_set` with
 ``eval_seed``: the same configuration gives the same starts and goals for every policy.
@@ -24,9 +24,9 @@ from pathlib import Path
 
 import torch
 
-from crowdbench.envs.core import COLLISION, OUTCOMES, SUCCESS, TIMEOUT
 from crowdbench.envs.factory import env_name, selfplay_config, selfplay_world
-from crowdbench.envs.policy import Policy
+from crowdbench.envs.observation import Policy
+from crowdbench.envs.rules import COLLISION, OUTCOMES, SUCCESS, TIMEOUT
 from crowdbench.envs.selfplay import SelfPlayConfig, episode_set
 from crowdbench.envs.torchrl_env import CrowdEnv
 from crowdbench.metric_table import IN_SELFPLAY, in_table, metric

@@ -35,8 +35,8 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from crowdbench.envs.core import OUTCOMES, RUNNING
 from crowdbench.envs.protocol import load_episodes
+from crowdbench.envs.rules import OUTCOMES, RUNNING
 
 ENTITIES = (
     "world/robot", "world/goal", "world/start", "world/sensing", "world/trajectory", "world/humans",

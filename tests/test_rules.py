@@ -7,7 +7,7 @@ import torch
 from worlds import replay_sim, reset_v1
 
 from crowdbench.data.scenes import Scene, load_scene
-from crowdbench.envs.core import (
+from crowdbench.envs.rules import (
     COLLISION,
     RUNNING,
     SUCCESS,

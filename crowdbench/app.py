@@ -1,5 +1,6 @@
-"""The evaluation half of the ``crowdbench`` command line: policies, output directories, the evaluation
-run and the training probe of the config's protocol (crowdbench/protocols/: nothing here asks which)."""
+"""The application layer the commands share (``crowdbench eval`` / ``run`` / ``submit``, sweeps, the API):
+usage errors, the checked config, its policy and protocol, output directories, an evaluation run and the
+training probe of the config's protocol (crowdbench/protocols/: nothing here asks which)."""
 
 from __future__ import annotations
 
