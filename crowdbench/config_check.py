@@ -12,7 +12,6 @@ Keys the schema does not know (added with Hydra's ``+key=value``) are accepted, 
 
 from __future__ import annotations
 
-import math
 import re
 import reprlib
 import typing
@@ -22,6 +21,7 @@ from pathlib import Path
 from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from crowdbench.config_fields import problem, value_range
 from crowdbench.config_schema import SELECTED, RootConfig
 
 CHECKPOINT_SECTIONS = ("env", "algo", "encoder")
@@ -61,9 +61,11 @@ def _selected(raw: dict, groups, prefix: str = "") -> dict[str, type]:
 
 
 def _open(node) -> None:
-    """Let every mapping of ``node`` take keys its schema lacks (``+key=value``); types stay checked."""
+    """Let every mapping of ``node`` take keys its schema lacks (``+key=value``) and values (a frozen runtime
+    dataclass, e.g. ``ReactiveParams``, is read-only in OmegaConf); types stay checked."""
     if isinstance(node, DictConfig) and not node._is_none():
         OmegaConf.set_struct(node, False)
+        OmegaConf.set_readonly(node, False)
         for key in node:
             _open(node._get_node(key))
 
@@ -142,49 +144,16 @@ def _type_error(err: OmegaConfBaseException, raw: dict, selected: dict[str, type
     key = str(getattr(err, "full_key", "") or "?")
     value, (expected, meta) = _lookup(raw, key), _expected(key, selected)
     if expected is None:
-        problem = " ".join(str(getattr(err, "msg", err)).split("\n")[0].split())
+        what = " ".join(str(getattr(err, "msg", err)).split("\n")[0].split())
     else:
         base, optional = _strip_optional(expected)
-        rng = _range(meta) if not typing.get_origin(base) else None
-        problem = ("must not be null; " if value is None else "") + "must be " + describe(base)
-        problem += (f" {rng}" if rng else "") + (" or null" if optional else "")
-    return ConfigError(f"{prefix}{key}: {problem} (got {short(value)})")
+        rng = value_range(meta) if not typing.get_origin(base) else None
+        what = ("must not be null; " if value is None else "") + "must be " + describe(base)
+        what += (f" {rng}" if rng else "") + (" or null" if optional else "")
+    return ConfigError(f"{prefix}{key}: {what} (got {short(value)})")
 
 
 # --------------------------------------------------------------------------------------------- bounds
-def _num(x) -> str:
-    return "2**63" if x == 2**63 else repr(x)
-
-
-def _range(meta: dict) -> str | None:
-    lo = ("(", meta["gt"]) if "gt" in meta else ("[", meta["ge"]) if "ge" in meta else None
-    hi = (")", meta["lt"]) if "lt" in meta else ("]", meta["le"]) if "le" in meta else None
-    if lo and hi:
-        return f"in {lo[0]}{_num(lo[1])}, {_num(hi[1])}{hi[0]}"
-    if lo:
-        return f"{'>' if lo[0] == '(' else '>='} {_num(lo[1])}"
-    if hi:
-        return f"{'<' if hi[0] == ')' else '<='} {_num(hi[1])}"
-    return None
-
-
-def _problem(v, meta: dict) -> str | None:
-    if isinstance(v, float) and not math.isfinite(v):
-        return "must be a finite number"
-    choices = meta.get("choices")
-    if choices is not None and isinstance(v, str):
-        fold = str.casefold if meta.get("casefold") else str
-        if fold(v) not in {fold(c) for c in choices}:
-            return f"must be one of {', '.join(choices)}"
-    rng = _range(meta)
-    if rng is not None and isinstance(v, int | float) and not isinstance(v, bool):
-        ok = (("gt" not in meta or v > meta["gt"]) and ("ge" not in meta or v >= meta["ge"])
-              and ("lt" not in meta or v < meta["lt"]) and ("le" not in meta or v <= meta["le"]))
-        if not ok:
-            return f"must be {rng}"
-    return None
-
-
 def _check_bounds(cls, values: dict, raw, selected: dict[str, type], prefix: str) -> None:
     """The bounds of ``cls``'s fields on the merged ``values``; the message shows the ``raw`` value."""
     hints = _hints(cls)
@@ -206,10 +175,10 @@ def _check_bounds(cls, values: dict, raw, selected: dict[str, type], prefix: str
         if isinstance(value, list) and len(value) < f.metadata.get("min_len", 0):
             raise ConfigError(f"{key}: must not be empty (got {short(given)})")
         for item in items:
-            problem = _problem(item, f.metadata)
-            if problem:
+            bad = problem(item, f.metadata)
+            if bad:
                 each = "each item " if isinstance(value, list) else ""
-                raise ConfigError(f"{key}: {each}{problem} (got {short(given)})")
+                raise ConfigError(f"{key}: {each}{bad} (got {short(given)})")
 
 
 # ---------------------------------------------------------------------------------------------- entry

@@ -15,108 +15,63 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from crowdbench.config_fields import bounded
-from crowdbench.envs.humans.reactive import CROWDS
-from crowdbench.envs.humans.reactive_replay import MODELS as REACTIVE_MODELS
+from crowdbench.baselines.params import OrcaSettings
+from crowdbench.config_fields import SEED_BOUNDS, bounded
+from crowdbench.envs.crowdnav import CrowdNavConfig
+from crowdbench.envs.humans.reactive_replay import ReactiveParams
+from crowdbench.envs.rules import SimConfig
+from crowdbench.envs.selfplay import SCENARIOS as SELFPLAY_SCENARIOS
+from crowdbench.envs.selfplay import SelfPlayConfig
 
-FRAMES = ("rotate", "translate", "world")
-SEED_BOUNDS = {"ge": 0, "lt": 2**63}
 MAX_ENV_BATCH = 65536  # 256x the largest recipe's (experiment=ppo)
 
 
 # ------------------------------------------------------------------------------------------------ env
-@dataclass
-class SimEnvConfig:
-    """The simulator settings every env shares (crowdbench/envs/rules.py ``SimConfig``)."""
+# The env schemas are the runtime settings classes themselves (their fields carry the bounds:
+# crowdbench/envs/rules.py SimConfig, envs/selfplay.py SelfPlayConfig, envs/crowdnav.py CrowdNavConfig,
+# envs/humans/reactive_replay.py ReactiveParams), plus the keys that are not simulator settings: the env's
+# name, its training batch and its evaluation set.
 
-    name: str = bounded("replay", choices=("replay",))
+
+def _name(env: str):
+    return bounded(env, choices=(env,))
+
+
+def _batch():
     # parallel environments for training; bounded so that a typo (1e8) is an error, not GBs of tensors
-    batch: int = bounded(16, ge=1, le=MAX_ENV_BATCH)
-    dt: float = bounded(0.25, gt=0)
-    v_max: float = bounded(1.0, gt=0)
-    robot_radius: float = bounded(0.2, gt=0)
-    human_radius: float = bounded(0.1, ge=0)
-    danger_dist: float = bounded(0.2, ge=0)
-    sensing_range: float = bounded(5.0, gt=0)
-    time_limit: int = bounded(100, ge=1)  # steps
-    r_reach: float = 1.0
-    r_fail: float = -0.25
-    danger_dt_scaling: bool = False
-    frame: str = bounded("rotate", choices=FRAMES)
-    start_radius: float = bounded(4.0, gt=0)
-    time_base: str = bounded("true", choices=("true", "0.4"), casefold=True)
+    return bounded(16, ge=1, le=MAX_ENV_BATCH)
 
 
 @dataclass
-class ReactiveConfig:
-    """``env.reactive`` (crowdbench/envs/humans/reactive_replay.py ``ReactiveParams``)."""
-
-    model: str = bounded("orca", choices=REACTIVE_MODELS)
-    horizon: float = bounded(1.0, gt=0)
-    speed_factor: float = bounded(1.3, gt=0)
-    min_speed: float = bounded(1.0, ge=0)
-    neighbor_dist: float = bounded(10.0, gt=0)
-    time_horizon: float = bounded(5.0, gt=0)
-    responsibility: float = bounded(0.5, gt=0, le=1)
-    radius_margin: float = bounded(0.01, ge=0)
-
-
-@dataclass
-class ReplayEnvConfig(SimEnvConfig):
+class ReplayEnvConfig(SimConfig):
     """``env=replay``: one robot among replayed ETH/UCY pedestrians (protocols v1 and v2)."""
 
+    name: str = _name("replay")
+    batch: int = _batch()
     scene: str = "students001"
     humans: str = bounded("replay", choices=("replay", "reactive_replay"))
-    reactive: ReactiveConfig = field(default_factory=ReactiveConfig)
+    reactive: ReactiveParams = field(default_factory=ReactiveParams)
 
 
 @dataclass
-class SelfPlayEnvConfig(SimEnvConfig):
-    """``env=selfplay`` (crowdbench/envs/selfplay.py ``SelfPlayConfig``) and its evaluation set."""
+class SelfPlayEnvConfig(SelfPlayConfig):
+    """``env=selfplay`` and its evaluation set."""
 
-    name: str = bounded("selfplay", choices=("selfplay",))
-    scenario: str = bounded("circle", choices=("circle", "square", "mixed"))
-    n_agents: int = bounded(8, ge=1)
-    circle_radius: float = bounded(4.0, gt=0)
-    square_width: float = bounded(8.0, gt=0)
-    jitter: float = bounded(0.1, ge=0)
-    min_spacing: float = bounded(0.8, gt=0)
-    background: str = ""
-    done_agents: str = bounded("vanish", choices=("vanish", "obstacle"))
-    n_humans: int = bounded(0, ge=0)
-    humans: str = bounded("orca", choices=tuple(CROWDS))  # the crowd models, by name
-    robot_visible: bool = True
-    human_v_pref: float = bounded(1.0, gt=0)
-    obs_slots: int = bounded(0, ge=0)
-    scale_geometry: bool = False
+    name: str = _name("selfplay")
+    batch: int = _batch()
     eval_scenarios: list[str] = field(default_factory=lambda: ["circle", "square"], metadata={"min_len": 1,
-                                        "choices": ("circle", "square", "mixed")})
+                                        "choices": SELFPLAY_SCENARIOS})
     eval_n_agents: list[int] | None = field(default=None, metadata={"min_len": 1, "ge": 1})
     eval_episodes: int = bounded(100, ge=1)
     eval_seed: int = bounded(20261122, **SEED_BOUNDS)
 
 
 @dataclass
-class CrowdNavEnvConfig(SimEnvConfig):
-    """``env=crowdnav`` (crowdbench/envs/crowdnav.py ``CrowdNavConfig``) and its test cases."""
+class CrowdNavEnvConfig(CrowdNavConfig):
+    """``env=crowdnav`` and its test cases."""
 
-    name: str = bounded("crowdnav", choices=("crowdnav",))
-    scenario: str = bounded("circle", choices=("circle", "square"))
-    n_humans: int = bounded(5, ge=1)
-    humans: str = bounded("orca", choices=tuple(CROWDS))  # the crowd models, by name
-    robot_visible: bool = False
-    robot_radius: float = bounded(0.3, gt=0)
-    human_radius: float = bounded(0.3, ge=0)
-    human_v_pref: float = bounded(1.0, gt=0)
-    sensing_range: float = bounded(100.0, gt=0)
-    reward: str = bounded("crowdnav", choices=("paper", "crowdnav"))
-    discomfort_factor: float = bounded(0.5, ge=0)
-    orca_neighbor_dist: float = bounded(10.0, gt=0)
-    orca_max_neighbors: int = bounded(10, ge=0)
-    orca_time_horizon: float = bounded(5.0, gt=0)
-    orca_radius_margin: float = bounded(0.01, ge=0)
-    orca_backend: str = bounded("numba", choices=("numba", "torch"))  # the same numbers; numba is faster
-    sfm_backend: str = bounded("torch", choices=("torch", "numba"))  # numba: faster, a few ulps off torch
+    name: str = _name("crowdnav")
+    batch: int = _batch()
     eval_settings: list[str] | None = field(default=None, metadata={"min_len": 1})  # e.g. [circle_n5]
     eval_episodes: int | None = bounded(None, ge=1)
 
@@ -314,14 +269,7 @@ class VizConfig:
     trail_s: float = bounded(2.0, ge=0)
 
 
-@dataclass
-class OrcaConfig:
-    safety_margin: float = bounded(0.2, ge=0)
-    time_horizon: float = bounded(2.0, gt=0)
-    max_neighbors: int = bounded(10, ge=0)
-    neighbor_dist: float = bounded(5.0, gt=0)
-    perturb: float = bounded(1.0e-3, ge=0)
-    pref_rule: str = bounded("reach", choices=("reach", "crowdnav"))
+OrcaConfig = OrcaSettings  # the robot's ORCA baseline: crowdbench/baselines/params.py
 
 
 @dataclass

@@ -35,6 +35,9 @@ def training_config(cfg: dict) -> dict:
     for key in ("curriculum_agents", "curriculum_frames"):  # no curriculum: absent from checkpoints made before it
         if out["train"].get(key) == []:
             out["train"].pop(key)
+    if out["env"].get("reward", "paper") == "paper":  # the default of replay and self-play, absent from their
+        out["env"].pop("reward", None)  # checkpoints made before their YAMLs named it (with the discomfort factor,
+        out["env"].pop("discomfort_factor", None)  # which the paper's reward does not read)
     if out["env"].get("sfm_backend") == "torch":  # the default, absent from checkpoints made before the option
         out["env"].pop("sfm_backend")  # (numba's social force is not torch's bit for bit: kept when set)
     if out["encoder"].get("robot_radius2", 0) is None:  # the default, absent from checkpoints made before the option

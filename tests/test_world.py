@@ -129,7 +129,7 @@ def test_bad_settings_seeds_and_options_are_one_line_errors():
 
     for key, value in (("v_max", -1.0), ("dt", 0.0), ("robot_radius", float("nan")), ("human_radius", -0.1),
                        ("sensing_range", 0.0), ("time_limit", 0)):
-        with pytest.raises(ValueError, match=f"env.{key} must be"):
+        with pytest.raises(ValueError, match=f"env.{key}: must be"):
             SimConfig(**{key: value})
     with pytest.raises(ValueError, match="batch"):
         replay_env("hotel", 0)

@@ -30,10 +30,10 @@ import pyrvo
 import torch
 from tensordict import TensorDict
 
+from crowdbench.baselines.params import OrcaSettings
 from crowdbench.envs.observation import OBS, Policy
 
 _TWO_PI = 2.0 * math.pi
-PREF_RULES = ("reach", "crowdnav")
 
 
 def _mix32(h: np.ndarray) -> np.ndarray:
@@ -117,28 +117,29 @@ class ORCA(Policy):
         dt: float = 0.25,
         robot_radius: float = 0.2,
         human_radius: float = 0.1,
-        safety_margin: float = 0.2,
-        neighbor_dist: float = 5.0,
-        max_neighbors: int = 10,
-        time_horizon: float = 2.0,
+        safety_margin: float = OrcaSettings.safety_margin,
+        neighbor_dist: float = OrcaSettings.neighbor_dist,
+        max_neighbors: int = OrcaSettings.max_neighbors,
+        time_horizon: float = OrcaSettings.time_horizon,
         time_horizon_obst: float = 5.0,
-        perturb: float = 1e-3,
-        pref_rule: str = "reach",
+        perturb: float = OrcaSettings.perturb,
+        pref_rule: str = OrcaSettings.pref_rule,
         seed: int = 0,
         frame: str = "rotate",
     ):
         if frame not in ("rotate", "translate", "world"):
             raise ValueError(f"unknown frame {frame!r}; valid: rotate, translate, world")
-        if max_neighbors < 0 or neighbor_dist <= 0 or time_horizon <= 0 or time_horizon_obst <= 0:
-            raise ValueError("ORCA needs max_neighbors >= 0 and positive neighbor_dist and time horizons")
+        # the bounds of the orca section (one line naming the key)
+        OrcaSettings(safety_margin=safety_margin, time_horizon=time_horizon, max_neighbors=max_neighbors,
+                     neighbor_dist=neighbor_dist, perturb=perturb, pref_rule=pref_rule)
+        if not time_horizon_obst > 0:
+            raise ValueError(f"orca.time_horizon_obst: must be > 0 (got {time_horizon_obst!r})")
         self.v_max, self.dt = float(v_max), float(dt)
         self.robot_radius, self.human_radius = float(robot_radius), float(human_radius)
         self.safety_margin = float(safety_margin)
         self.neighbor_dist, self.max_neighbors = float(neighbor_dist), int(max_neighbors)
         self.time_horizon, self.time_horizon_obst = float(time_horizon), float(time_horizon_obst)
         self.perturb, self.seed = float(perturb), int(seed)
-        if pref_rule not in PREF_RULES:
-            raise ValueError(f"unknown orca.pref_rule {pref_rule!r}; valid: {', '.join(PREF_RULES)}")
         self.pref_rule = pref_rule
         self.frame = frame
 

@@ -11,7 +11,10 @@ from __future__ import annotations
 
 import copy
 import functools
+from dataclasses import dataclass
 from pathlib import Path
+
+from crowdbench.config_fields import bounded, check_fields
 
 NAMES = ("orca", "straight", "oracle")  # every built-in policy (anything else must be a checkpoint path)
 PRIVILEGED = ("oracle",)  # knows the replayed humans' future: an upper bound, not a navigation policy
@@ -19,6 +22,26 @@ BASELINES = tuple(n for n in NAMES if n not in PRIVILEGED)
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 ENV_ARGS = {"orca": ("v_max", "dt", "robot_radius", "human_radius"), "straight": ("v_max", "dt"), "oracle": ()}
 SEEDED = ("orca",)  # policies whose constructor takes the run's seed
+PREF_RULES = ("reach", "crowdnav")
+
+
+@dataclass
+class OrcaSettings:
+    """The robot's ORCA baseline (``policy=orca``, the warm start's demonstrator, a residual actor's base): the
+    ``orca`` section of conf/config.yaml, with its bounds (also its schema) and the constructor's defaults
+    (crowdbench/baselines/orca.py). The humans' ORCA is another parameter set: envs/humans/reactive.py
+    ``OrcaParams`` (CrowdNav's), which the reactive crowds and ``env.reactive`` share."""
+
+    safety_margin: float = bounded(0.2, ge=0)  # m added to the human radius
+    time_horizon: float = bounded(2.0, gt=0)  # s
+    max_neighbors: int = bounded(10, ge=0)
+    neighbor_dist: float = bounded(5.0, gt=0)  # m, the sensing range
+    perturb: float = bounded(1.0e-3, ge=0)  # m/s symmetry-breaking perturbation of the preferred velocity
+    # near the goal: reach (land on it in one step) | crowdnav (min(dist, 1) m/s, CrowdNav's rule)
+    pref_rule: str = bounded("reach", choices=PREF_RULES)
+
+    def __post_init__(self):
+        check_fields(self, "orca.")
 
 
 class PolicyError(ValueError):

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from crowdbench.config_fields import bounded, rebound
 from crowdbench.envs.crowdnav_cases import CROWDNAV, UnplaceableCase, case_list, crowdnav_case
 from crowdbench.envs.humans.reactive import CROWDS, ORCA_BACKENDS, SFM_BACKENDS, OrcaParams, reactive_crowd
 from crowdbench.envs.rules import SimConfig, check_seed, int_option
@@ -42,38 +43,31 @@ HUMAN_MODELS = tuple(CROWDS)
 
 @dataclass
 class CrowdNavConfig(SimConfig):
-    robot_radius: float = CROWDNAV.robot_radius
-    human_radius: float = CROWDNAV.human_radius
-    danger_dist: float = CROWDNAV.discomfort_dist
-    sensing_range: float = 100.0  # m: CrowdNav's robot observes every human
-    r_reach: float = CROWDNAV.success_reward
-    r_fail: float = CROWDNAV.collision_penalty
-    reward: str = "crowdnav"
-    discomfort_factor: float = CROWDNAV.discomfort_penalty_factor
-    scenario: str = "circle"  # circle | square
-    n_humans: int = CROWDNAV.human_num
-    humans: str = "orca"  # orca | sfm
+    """``env=crowdnav``'s settings (CrowdNav's defaults), with their bounds: also its schema."""
+
+    robot_radius: float = rebound(SimConfig, "robot_radius", CROWDNAV.robot_radius)
+    human_radius: float = rebound(SimConfig, "human_radius", CROWDNAV.human_radius)
+    danger_dist: float = rebound(SimConfig, "danger_dist", CROWDNAV.discomfort_dist)
+    sensing_range: float = rebound(SimConfig, "sensing_range", 100.0)  # m: CrowdNav's robot observes every human
+    r_reach: float = rebound(SimConfig, "r_reach", CROWDNAV.success_reward)
+    r_fail: float = rebound(SimConfig, "r_fail", CROWDNAV.collision_penalty)
+    reward: str = rebound(SimConfig, "reward", "crowdnav")
+    discomfort_factor: float = rebound(SimConfig, "discomfort_factor", CROWDNAV.discomfort_penalty_factor)
+    scenario: str = bounded("circle", choices=SCENARIOS)
+    n_humans: int = bounded(CROWDNAV.human_num, ge=1)
+    humans: str = bounded("orca", choices=HUMAN_MODELS)
     robot_visible: bool = CROWDNAV.robot_visible
-    human_v_pref: float = CROWDNAV.human_v_pref
-    orca_neighbor_dist: float = OrcaParams.neighbor_dist
-    orca_max_neighbors: int = OrcaParams.max_neighbors
-    orca_time_horizon: float = OrcaParams.time_horizon
-    orca_radius_margin: float = OrcaParams.radius_margin
-    orca_backend: str = OrcaParams.backend  # numba | torch: the same numbers, numba is faster
-    sfm_backend: str = "torch"  # torch (the reference) | numba: faster, within a few float32 ulps (not identical)
+    human_v_pref: float = bounded(CROWDNAV.human_v_pref, gt=0)
+    orca_neighbor_dist: float = bounded(OrcaParams.neighbor_dist, gt=0)
+    orca_max_neighbors: int = bounded(OrcaParams.max_neighbors, ge=0)
+    orca_time_horizon: float = bounded(OrcaParams.time_horizon, gt=0)
+    orca_radius_margin: float = bounded(OrcaParams.radius_margin, ge=0)
+    orca_backend: str = bounded(OrcaParams.backend, choices=tuple(ORCA_BACKENDS))  # the same numbers; numba is faster
+    # torch (the reference) | numba: faster, within a few float32 ulps (not identical)
+    sfm_backend: str = bounded("torch", choices=tuple(SFM_BACKENDS))
 
     def __post_init__(self):
-        super().__post_init__()
-        if self.scenario not in SCENARIOS:
-            raise ValueError(f"unknown env.scenario {self.scenario!r} for env=crowdnav; valid: {', '.join(SCENARIOS)}")
-        if self.humans not in HUMAN_MODELS:
-            raise ValueError(f"unknown env.humans {self.humans!r} for env=crowdnav; valid: {', '.join(HUMAN_MODELS)}")
-        if self.orca_backend not in ORCA_BACKENDS:
-            raise ValueError(f"unknown env.orca_backend {self.orca_backend!r}; valid: {', '.join(ORCA_BACKENDS)}")
-        if self.sfm_backend not in SFM_BACKENDS:
-            raise ValueError(f"unknown env.sfm_backend {self.sfm_backend!r}; valid: {', '.join(SFM_BACKENDS)}")
-        if self.n_humans < 1:
-            raise ValueError(f"env.n_humans must be >= 1, got {self.n_humans}")
+        super().__post_init__()  # every field's bounds
         if abs(self.dt - CROWDNAV.dt) > 1e-12 or self.v_max != CROWDNAV.robot_v_pref:
             # the case geometry (noise scaled by v_pref, 0.8 m spacing) is CrowdNav's only at its settings
             raise ValueError(f"env=crowdnav fixes dt={CROWDNAV.dt} and v_max={CROWDNAV.robot_v_pref}")

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field, fields
 
 import torch
 
+from crowdbench.config_fields import SEED_BOUNDS, bounded, check_fields, problem, value_range
 from crowdbench.data.scenes import Scene
 
 # the kinematics live in one module that the networks share; re-exported for code that imports them from here
@@ -27,23 +28,30 @@ REWARDS = ("paper", "crowdnav")
 START_CLEARANCE = 0.3  # m: a start point closer than this to a present human is not used
 
 
+FRAMES = ("rotate", "translate", "world")
+
+
 @dataclass
 class SimConfig:
-    dt: float = 0.25
-    v_max: float = 1.0
-    robot_radius: float = 0.2
-    human_radius: float = 0.1
-    danger_dist: float = 0.2
-    sensing_range: float = 5.0
-    time_limit: int = 100  # steps (25 s at dt = 0.25)
-    r_reach: float = 1.0
-    r_fail: float = -0.25
+    """The simulator settings every env shares; its fields, with their bounds, are also the ``env`` schema's
+    (crowdbench/config_schema.py), so a value is refused in the same words from Python and from a config."""
+
+    dt: float = bounded(0.25, gt=0)
+    v_max: float = bounded(1.0, gt=0)
+    robot_radius: float = bounded(0.2, gt=0)
+    human_radius: float = bounded(0.1, ge=0)
+    danger_dist: float = bounded(0.2, ge=0)
+    sensing_range: float = bounded(5.0, gt=0)
+    time_limit: int = bounded(100, ge=1)  # steps (25 s at dt = 0.25)
+    r_reach: float = bounded(1.0)
+    r_fail: float = bounded(-0.25)
     danger_dt_scaling: bool = False  # CrowdNav multiplies the danger penalty by dt
-    reward: str = "paper"  # paper (Eq. 1-2) | crowdnav (Chen et al. 2019: discomfort on the swept gap, no timeout penalty)
-    discomfort_factor: float = 0.5  # crowdnav reward: penalty per metre inside danger_dist, times dt
-    frame: str = "rotate"  # observation frame: rotate | translate | world
-    start_radius: float = 4.0
-    time_base: str = "true"  # ETH row period: true (2/3 s) or 0.4
+    # paper (Eq. 1-2) | crowdnav (Chen et al. 2019: discomfort on the swept gap, no timeout penalty)
+    reward: str = bounded("paper", choices=REWARDS)
+    discomfort_factor: float = bounded(0.5, ge=0)  # crowdnav reward: penalty per metre inside danger_dist, times dt
+    frame: str = bounded("rotate", choices=FRAMES)  # observation frame
+    start_radius: float = bounded(4.0, gt=0)
+    time_base: str = bounded("true", choices=("true", "0.4"), casefold=True)  # ETH row period: true (2/3 s) or 0.4
 
     @classmethod
     def fields_of(cls, mapping) -> dict:
@@ -53,24 +61,13 @@ class SimConfig:
         return {k: (str(v).lower() if k == "time_base" else v) for k, v in dict(mapping).items() if k in names}
 
     def __post_init__(self):
-        if self.frame not in ("rotate", "translate", "world"):
-            raise ValueError(f"unknown env.frame {self.frame!r}; valid: rotate, translate, world")
-        if self.reward not in REWARDS:
-            raise ValueError(f"unknown env.reward {self.reward!r}; valid: {', '.join(REWARDS)}")
-        for key in ("dt", "v_max", "robot_radius", "sensing_range"):
-            if not float(getattr(self, key)) > 0:  # also rejects NaN
-                raise ValueError(f"env.{key} must be > 0, got {getattr(self, key)!r}")
-        for key in ("human_radius", "danger_dist"):
-            if not float(getattr(self, key)) >= 0:
-                raise ValueError(f"env.{key} must be >= 0, got {getattr(self, key)!r}")
-        if not isinstance(self.time_limit, int) or self.time_limit < 1:
-            raise ValueError(f"env.time_limit must be a positive number of steps, got {self.time_limit!r}")
+        check_fields(self, "env.")
 
 
 def check_seed(seed) -> int:
     """A seed as a Python int in ``[0, 2**63)`` (numpy integers accepted); one-line error naming it otherwise."""
-    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or not 0 <= int(seed) < 2**63:
-        raise ValueError(f"seed must be an integer in [0, 2**63), got {seed!r}")
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or problem(int(seed), SEED_BOUNDS):
+        raise ValueError(f"seed must be an integer {value_range(SEED_BOUNDS)}, got {seed!r}")
     return int(seed)
 
 

@@ -22,7 +22,9 @@ from dataclasses import dataclass, replace
 
 import torch
 
+from crowdbench.config_fields import bounded
 from crowdbench.data.scenes import Scene
+from crowdbench.envs.humans.reactive import CROWDS
 from crowdbench.envs.rules import START_CLEARANCE, SimConfig, check_seed, free_start, int_option
 from crowdbench.envs.world import DONE_AGENTS
 
@@ -31,38 +33,35 @@ SCENARIOS = ("circle", "square", "mixed")
 
 @dataclass
 class SelfPlayConfig(SimConfig):
-    n_agents: int = 8
-    scenario: str = "circle"  # circle | square | mixed (each episode one of the two, 50/50)
-    circle_radius: float = 4.0  # m
-    square_width: float = 8.0  # m, side of the square (start and goal sides are this far apart)
-    jitter: float = 0.1  # m, uniform noise per axis on every start and goal
-    min_spacing: float = 0.8  # m, square crossing: min distance between starts (and between goals), before jitter
+    """``env=selfplay``'s settings, with their bounds: also its schema."""
+
+    n_agents: int = bounded(8, ge=1)
+    scenario: str = bounded("circle", choices=SCENARIOS)  # mixed: each episode one of the two, 50/50
+    circle_radius: float = bounded(4.0, gt=0)  # m
+    square_width: float = bounded(8.0, gt=0)  # m, side of the square (start and goal sides are this far apart)
+    jitter: float = bounded(0.1, ge=0)  # m, uniform noise per axis on every start and goal
+    # m, square crossing: min distance between starts (and between goals), before jitter
+    min_spacing: float = bounded(0.8, gt=0)
     background: str = ""  # scene name of replayed ETH/UCY background humans; "" = none
-    done_agents: str = "vanish"  # vanish | obstacle
-    n_humans: int = 0  # reactive humans placed by the scenario like extra agents (not with a background)
-    humans: str = "orca"  # their model: orca | sfm
+    done_agents: str = bounded("vanish", choices=DONE_AGENTS)
+    n_humans: int = bounded(0, ge=0)  # reactive humans placed by the scenario like extra agents (not with a background)
+    humans: str = bounded("orca", choices=tuple(CROWDS))  # their model
     robot_visible: bool = True  # whether they see (and avoid) the learning agents
-    human_v_pref: float = 1.0  # m/s
+    human_v_pref: float = bounded(1.0, gt=0)  # m/s
     # each agent observes its obs_slots nearest bodies (0 = every slot): the observation, and the graph an
     # encoder builds from it, stay linear in the number of agents (World.observe)
-    obs_slots: int = 0
+    obs_slots: int = bounded(0, ge=0)
     # square crossing of more agents than the sides hold (n * min_spacing > 2 * width): widen the square to
     # fit them and lengthen the time limit in proportion (the same time per metre of side), instead of failing
     scale_geometry: bool = False
 
     def __post_init__(self):
-        super().__post_init__()
+        super().__post_init__()  # every field's bounds
         if self.scale_geometry and self.scenario != "circle":
             need = (self.n_agents + self.n_humans) * self.min_spacing / 2
             if need > self.square_width:  # (idempotent: a scaled config is not scaled again by replace())
                 self.time_limit = math.ceil(self.time_limit * need / self.square_width)
                 self.square_width = need
-        if self.scenario not in SCENARIOS:
-            raise ValueError(f"unknown self-play scenario {self.scenario!r}; valid: {', '.join(SCENARIOS)}")
-        if self.done_agents not in DONE_AGENTS:
-            raise ValueError(f"unknown done_agents {self.done_agents!r}; valid: {', '.join(DONE_AGENTS)}")
-        if self.n_agents < 1:
-            raise ValueError(f"n_agents must be >= 1, got {self.n_agents}")
         gap = 2 * self.circle_radius * math.sin(math.pi / self.n_agents) - 2 * math.sqrt(2) * self.jitter
         if self.scenario != "square" and self.n_agents > 1 and gap <= 2 * self.robot_radius:
             raise ValueError(f"{self.n_agents} agents do not fit on a circle of radius {self.circle_radius} m "
@@ -75,18 +74,10 @@ class SelfPlayConfig(SimConfig):
                              "raise env.square_width or set env.scale_geometry=true")
         if self.min_spacing <= 2 * self.robot_radius:
             raise ValueError(f"min_spacing must exceed two robot radii ({2 * self.robot_radius} m)")
-        if self.n_humans < 0:
-            raise ValueError(f"env.n_humans must be >= 0, got {self.n_humans}")
-        if self.obs_slots < 0:
-            raise ValueError(f"env.obs_slots must be >= 0, got {self.obs_slots}")
         if self.n_humans:
-            from crowdbench.envs.humans.reactive import CROWDS
-
             if self.background:
                 raise ValueError("env.n_humans (reactive humans) and env.background (replayed humans) exclude "
                                  "each other in self-play")
-            if self.humans not in CROWDS:
-                raise ValueError(f"unknown env.humans {self.humans!r}; valid: {', '.join(CROWDS)}")
             replace(self, n_agents=self.n_agents + self.n_humans, n_humans=0)  # agents and humans must fit
 
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import torch
 
 from crowdbench import policies
-from crowdbench.config_schema import FRAMES
+from crowdbench.envs.rules import FRAMES
 from crowdbench.leaderboard.encoders import register_encoder
 from crowdbench.leaderboard.submission import Submission, SubmissionError
 from crowdbench.leaderboard.tracks import trained_track

@@ -19,6 +19,8 @@ import yaml
 
 from crowdbench import policies
 from crowdbench.algos.registry import names as algo_names
+from crowdbench.config_fields import SEED_BOUNDS, value_range
+from crowdbench.config_fields import problem as bound_problem
 from crowdbench.envs.lookahead import MODELS as LOOKAHEAD_MODELS
 from crowdbench.envs.lookahead import PRIVILEGED_MODELS
 from crowdbench.leaderboard.text import bad_char, one_line, short
@@ -47,7 +49,6 @@ IMPORT_RE = re.compile(r"[A-Za-z_]\w*(\.[A-Za-z_]\w*)*:[A-Za-z_]\w*", re.ASCII)
 # http(s), a host, then characters that need no escaping in markdown (no space, quote, <, >, |, [, ], `, *)
 LINK_RE = re.compile(r"https?://[A-Za-z0-9\-._~:/?#@!$&+,;=%()]+")
 LINK_RULE = "an http:// or https:// URL with a host (no spaces, quotes, <, >, |, [, ], `, *)"
-SEED_RANGE = (0, 2 ** 63)
 
 
 class SubmissionError(Exception):
@@ -203,8 +204,8 @@ def validate_schema(path: Path, data) -> dict:
         raise SubmissionError(path, "authors", "must be a non-empty list of names")
     if "link" in data and link_problem(data["link"]):
         raise SubmissionError(path, "link", link_problem(data["link"]))
-    if "seed" in data and not SEED_RANGE[0] <= data["seed"] < SEED_RANGE[1]:
-        raise SubmissionError(path, "seed", f"must lie in [0, 2**63), got {short(data['seed'])}")
+    if "seed" in data and bound_problem(data["seed"], SEED_BOUNDS):
+        raise SubmissionError(path, "seed", f"must lie {value_range(SEED_BOUNDS)}, got {short(data['seed'])}")
     for key, rx in (("encoder", WORD_RE), ("encoder_entry_points", WORD_RE), ("encoder_import", IMPORT_RE)):
         if key in data and not rx.fullmatch(data[key]):
             what = "is not of the form module:Class" if key == "encoder_import" else f"must match {rx.pattern}"

@@ -148,9 +148,6 @@ def reactive_model(cfg, strict: bool = True) -> str | None:
     Training may use any ``env.reactive`` values; evaluation uses the protocol's, so ``crowdbench eval``
     (``strict``) refuses different ones rather than silently replace them, while a training run's probe
     and final evaluation (not strict) use the protocol's values for its model."""
-    for key, value in dict(cfg.env.get("reactive") or {}).items():  # before the dataclass sees them
-        if key != "model" and (isinstance(value, bool) or not isinstance(value, int | float)):
-            raise ValueError(f"env.reactive.{key} must be a number, got {value!r}")
     try:
         params = replay_humans(cfg.env)
     except TypeError as e:

@@ -37,10 +37,12 @@ from dataclasses import asdict, dataclass, fields
 
 import torch
 
+from crowdbench.config_fields import bounded, check_fields
 from crowdbench.data.scenes import Scene
 from crowdbench.envs.humans import Agents
 from crowdbench.envs.humans.lp import _gather, _rows, far_lines, lp2_packed, lp3_packed
 from crowdbench.envs.humans.orca import DTYPE, _orca_lines
+from crowdbench.envs.humans.reactive import OrcaParams
 from crowdbench.envs.humans.sfm import SFMParams, robot_force
 
 MODELS = ("orca", "sfm")
@@ -48,29 +50,22 @@ MODELS = ("orca", "sfm")
 
 @dataclass(frozen=True)
 class ReactiveParams:
-    """The ``env.reactive`` settings (docs/reactive_replay.md gives the reasons for each default)."""
+    """The ``env.reactive`` settings, with their bounds (also the schema of ``env.reactive``); the ORCA ones
+    default to the humans' ORCA of every crowd model (:class:`~crowdbench.envs.humans.reactive.OrcaParams`).
+    docs/reactive_replay.md gives the reasons for each default."""
 
-    model: str = "orca"  # orca | sfm
+    model: str = bounded("orca", choices=MODELS)
     # s: how far ahead (along the recording) a displaced human aims; the offset decays by dt / horizon per step
-    horizon: float = 1.0
-    speed_factor: float = 1.3  # cap = speed_factor x recorded speed (Helbing & Molnar 1995's 1.3 v0)...
-    min_speed: float = 1.0  # m/s ... but never below this (CrowdNav's human v_pref)
-    neighbor_dist: float = 10.0  # m: robots farther away are ignored (CrowdNav's ORCA neighbour distance)
-    time_horizon: float = 5.0  # s, ORCA (CrowdNav's)
-    responsibility: float = 0.5  # ORCA: the human's share of the avoidance (RVO2's reciprocal 0.5)
-    radius_margin: float = 0.01  # m added to each body's radius in ORCA (CrowdNav's)
+    horizon: float = bounded(1.0, gt=0)
+    speed_factor: float = bounded(1.3, gt=0)  # cap = speed_factor x recorded speed (Helbing & Molnar 1995's 1.3 v0)...
+    min_speed: float = bounded(1.0, ge=0)  # m/s ... but never below this (CrowdNav's human v_pref)
+    neighbor_dist: float = bounded(OrcaParams.neighbor_dist, gt=0)  # m: robots farther away are ignored
+    time_horizon: float = bounded(OrcaParams.time_horizon, gt=0)  # s, ORCA
+    responsibility: float = bounded(0.5, gt=0, le=1)  # ORCA: the human's share of the avoidance (RVO2's 0.5)
+    radius_margin: float = bounded(OrcaParams.radius_margin, ge=0)  # m added to each body's radius in ORCA
 
     def __post_init__(self):
-        if self.model not in MODELS:
-            raise ValueError(f"unknown env.reactive.model {self.model!r}; valid: {', '.join(MODELS)}")
-        for key in ("horizon", "speed_factor", "neighbor_dist", "time_horizon", "responsibility"):
-            if not float(getattr(self, key)) > 0:  # also rejects NaN
-                raise ValueError(f"env.reactive.{key} must be > 0, got {getattr(self, key)!r}")
-        for key in ("min_speed", "radius_margin"):
-            if not float(getattr(self, key)) >= 0:
-                raise ValueError(f"env.reactive.{key} must be >= 0, got {getattr(self, key)!r}")
-        if self.responsibility > 1:
-            raise ValueError(f"env.reactive.responsibility must be in (0, 1], got {self.responsibility!r}")
+        check_fields(self, "env.reactive.")
 
     @classmethod
     def of(cls, mapping) -> ReactiveParams:
