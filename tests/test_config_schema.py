@@ -308,3 +308,44 @@ def test_bad_checkpoints_are_refused_in_one_line(name, message, checkpoints, no_
 
 def test_a_valid_checkpoint_validates(checkpoints):
     assert validate_checkpoint(checkpoints["good"])["config"]["encoder"]["dim"] == 8
+
+
+def test_the_env_schemas_are_the_runtime_settings_classes():
+    """One declaration per setting: each env schema subclasses the class the simulator runs with and adds only
+    keys that are not simulator settings; env.reactive's schema is ReactiveParams, orca's the baseline's."""
+    from crowdbench.baselines.params import OrcaSettings
+    from crowdbench.config_schema import OrcaConfig
+    from crowdbench.envs.crowdnav import CrowdNavConfig
+    from crowdbench.envs.humans.reactive_replay import ReactiveParams
+    from crowdbench.envs.rules import SimConfig
+    from crowdbench.envs.selfplay import SelfPlayConfig
+
+    runtime = {"replay": SimConfig, "selfplay": SelfPlayConfig, "crowdnav": CrowdNavConfig}
+    for name, schema in ENV_SCHEMAS.items():
+        assert issubclass(schema, runtime[name]), name
+        own = {f.name for f in fields(schema)} - {f.name for f in fields(runtime[name])}
+        assert all(k in ("name", "batch", "scene", "humans", "reactive") or k.startswith("eval_") for k in own), own
+        for f in fields(runtime[name]):  # not re-declared: the same default and bounds
+            g = next(g for g in fields(schema) if g.name == f.name)
+            assert (g.default, g.metadata) == (f.default, f.metadata), (name, f.name)
+    assert {f.name: f.type for f in fields(ENV_SCHEMAS["replay"])}["reactive"] in (ReactiveParams, "ReactiveParams")
+    assert OrcaConfig is OrcaSettings
+
+
+@pytest.mark.parametrize("args, cls, kwargs", [
+    (["env.v_max=-1"], "crowdbench.envs.rules:SimConfig", {"v_max": -1}),
+    (["env.frame=polar"], "crowdbench.envs.rules:SimConfig", {"frame": "polar"}),
+    (["env=selfplay", "env.n_agents=0"], "crowdbench.envs.selfplay:SelfPlayConfig", {"n_agents": 0}),
+    (["env=crowdnav", "env.orca_backend=fortran"], "crowdbench.envs.crowdnav:CrowdNavConfig", {"orca_backend": "fortran"}),
+    (["env.humans=reactive_replay", "env.reactive.responsibility=2"],
+     "crowdbench.envs.humans.reactive_replay:ReactiveParams", {"responsibility": 2}),
+    (["orca.max_neighbors=-1"], "crowdbench.baselines.orca:ORCA", {"max_neighbors": -1}),
+])
+def test_a_bad_value_is_refused_in_the_same_words_from_python_and_the_command_line(args, cls, kwargs, capsys, tmp_path):
+    import importlib
+
+    module, name = cls.split(":")
+    with pytest.raises(ValueError) as python:
+        getattr(importlib.import_module(module), name)(**kwargs)
+    assert main(["eval", "policy=straight", *args, f"out={tmp_path}"]) == 2
+    assert capsys.readouterr().err.strip() == f"crowdbench: error: {python.value}"
