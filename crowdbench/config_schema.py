@@ -15,7 +15,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from crowdbench.baselines.params import OrcaSettings
+from crowdbench.baselines.params import OracleSettings, OrcaSettings
 from crowdbench.config_fields import SEED_BOUNDS, bounded
 from crowdbench.envs.crowdnav import CrowdNavConfig
 from crowdbench.envs.humans.reactive_replay import ReactiveParams
@@ -272,15 +272,7 @@ class VizConfig:
 OrcaConfig = OrcaSettings  # the robot's ORCA baseline: crowdbench/baselines/params.py
 
 
-@dataclass
-class OracleConfig:
-    headings: int = bounded(16, ge=1)
-    # fractions of v_max
-    speeds: list[float] = field(default_factory=lambda: [1.0, 0.5], metadata={"min_len": 1, "gt": 0, "le": 1})
-    beam: int = bounded(32, ge=1)
-    cell: float = bounded(0.1, gt=0)
-    danger_cost: float = bounded(2.0, ge=0)
-    chunk: int = bounded(64, ge=1)
+OracleConfig = OracleSettings  # the oracle's search: crowdbench/baselines/params.py
 
 
 @dataclass

@@ -323,7 +323,7 @@ def test_registry_builds_the_same_policy_for_cli_and_leaderboard(tmp_path):
     with pytest.raises(policies.PolicyError, match=r"unknown oracle parameter 'seed'; valid: beam, cell") as e:
         policies.build("oracle", None, {"seed": 1})
     assert e.value.key == "seed"
-    with pytest.raises(policies.PolicyError, match=r"^oracle: oracle needs headings >= 1"):
+    with pytest.raises(policies.PolicyError, match=r"^oracle: oracle.headings: must be >= 1 \(got 0\)"):
         policies.build("oracle", None, {"oracle.headings": 0})
 
 

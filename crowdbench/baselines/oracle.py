@@ -41,6 +41,7 @@ import math
 import torch
 from tensordict import TensorDict
 
+from crowdbench.baselines.params import ORACLE_SPEEDS, OracleSettings
 from crowdbench.envs.observation import OBS, Policy
 from crowdbench.envs.rules import segment_min_distance
 from crowdbench.envs.world import World
@@ -61,12 +62,11 @@ class Oracle(Policy):
     frame = "world"
     privileged = True
 
-    def __init__(self, headings: int = 16, speeds=(1.0, 0.5), beam: int = 32, cell: float = 0.1,
-                 danger_cost: float = 2.0, chunk: int = 64):
-        if headings < 1 or beam < 1 or cell <= 0 or chunk < 1 or danger_cost < 0:
-            raise ValueError("oracle needs headings >= 1, beam >= 1, cell > 0, chunk >= 1, danger_cost >= 0")
-        if not speeds or any(not 0 < float(s) <= 1 for s in speeds):
-            raise ValueError(f"oracle speeds are fractions of v_max in (0, 1], got {list(speeds)}")
+    def __init__(self, headings: int = OracleSettings.headings, speeds=ORACLE_SPEEDS, beam: int = OracleSettings.beam,
+                 cell: float = OracleSettings.cell, danger_cost: float = OracleSettings.danger_cost,
+                 chunk: int = OracleSettings.chunk):
+        # the bounds of the oracle section (one line naming the key)
+        OracleSettings(headings=headings, speeds=list(speeds), beam=beam, cell=cell, danger_cost=danger_cost, chunk=chunk)
         self.headings, self.speeds, self.beam = int(headings), tuple(float(s) for s in speeds), int(beam)
         self.cell, self.danger_cost, self.chunk = float(cell), float(danger_cost), int(chunk)
         self._plan: torch.Tensor | None = None

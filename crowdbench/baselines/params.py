@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import copy
 import functools
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from crowdbench.config_fields import bounded, check_fields
@@ -42,6 +42,26 @@ class OrcaSettings:
 
     def __post_init__(self):
         check_fields(self, "orca.")
+
+
+ORACLE_SPEEDS = (1.0, 0.5)
+
+
+@dataclass
+class OracleSettings:
+    """The privileged oracle's search (``policy=oracle``): the ``oracle`` section of conf/config.yaml, with its
+    bounds (also its schema) and the constructor's defaults (crowdbench/baselines/oracle.py)."""
+
+    headings: int = bounded(16, ge=1)  # directions, rotations of the direction to the goal
+    # fractions of v_max (plus stop and "land on the goal")
+    speeds: list[float] = field(default_factory=lambda: list(ORACLE_SPEEDS), metadata={"min_len": 1, "gt": 0, "le": 1})
+    beam: int = bounded(32, ge=1)  # positions kept per episode and step
+    cell: float = bounded(0.1, gt=0)  # m, de-duplication grid of end positions
+    danger_cost: float = bounded(2.0, ge=0)  # steps of cost per danger step (0 <= d < 0.2 m)
+    chunk: int = bounded(64, ge=1)  # episodes planned together (memory bound)
+
+    def __post_init__(self):
+        check_fields(self, "oracle.")
 
 
 class PolicyError(ValueError):
