@@ -2,9 +2,9 @@
 
 The runtime dataclasses (``SimConfig``, ``ReactiveParams``, the algorithms' configs, ...) declare their
 fields with :func:`bounded`; crowdbench/config_schema.py registers those same classes as the schemas, and
-crowdbench/config_check.py reads the same metadata when it validates a composed config. A runtime
-dataclass checks itself with :func:`check_fields` in ``__post_init__``, so a value is refused in the same
-words whether it comes from the command line, a YAML or Python. Kept at the bottom layer so that an env or
+crowdbench/config_check.py reads the same metadata when it validates a composed config. The env and
+baseline settings classes also check themselves with :func:`check_fields` in ``__post_init__``, so a value
+is refused in the same words whether it comes from the command line, a YAML or Python. Kept at the bottom layer so that an env or
 an algorithm module can declare its schema without importing the schema registry (which imports them)."""
 
 from __future__ import annotations
