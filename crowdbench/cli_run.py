@@ -23,8 +23,8 @@ from crowdbench.app import (
 DEFAULT_RECIPE = ("algo=td3", "encoder=gatedgcn")
 RUN_ONLY = ("seed=", "out=", "cpus=", "resume=", "train.logger=", "train.save_buffer=", "eval.", "viz.")
 EXPECTATION = ("the default recipe (a residual on ORCA): about 11 minutes with cpus=2 on an idle 2-core machine, more on "
-               "one core beside another run; expect about 0.946 average success on protocol v1's paper scenes (3 seeds: "
-               "0.943-0.952; ORCA 0.935; a plain actor, algo.actor_base=none: 0.927; docs/training.md)")
+               "one core beside another run; expect about 0.958 average success on protocol v1's paper scenes (3 seeds: "
+               "0.955-0.961; ORCA 0.935; exploration sigma 0.3, the previous default: 0.946; docs/training.md)")
 
 
 def is_default_recipe(overrides: list[str]) -> bool:

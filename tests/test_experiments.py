@@ -109,26 +109,30 @@ def test_encoder_names_mean_the_cpu_width():
 
 def test_the_card_command_is_the_shipped_residual_recipe():
     """``crowdbench run algo=td3 encoder=gatedgcn`` trains exactly the config of the shipped
-    gatedgcn_td3_residual_s* rows (a seed reproduces its run bit for bit): ORCA's demonstrations, then 28,672
-    frames of TD3 (uniform replay) with an actor that adds a residual of at most 0.15 m/s to ORCA's velocity and
-    the cloning term kept at weight 1; ``train=scratch algo.replay=uniform algo.actor_base=none`` is RL from
-    scratch, the gatedgcn_td3_uniform_5x_s0 row."""
+    gatedgcn_td3_residual_sigma045_s* rows (a seed reproduces its run bit for bit): ORCA's demonstrations, then
+    28,672 frames of TD3 (uniform replay, exploration sigma 0.45) with an actor that adds a residual of at most
+    0.15 m/s to ORCA's velocity and the cloning term kept at weight 1; with ``algo.exploration_sigma=0.3`` it is
+    the previous default, the gatedgcn_td3_residual_s* rows; ``train=scratch algo.replay=uniform
+    algo.actor_base=none`` is RL from scratch, the gatedgcn_td3_uniform_5x_s0 row."""
     card = OmegaConf.to_container(compose(["algo=td3", "encoder=gatedgcn"]), resolve=True)
     t, a = card["train"], card["algo"]
     assert (t["pretrain"], t["pretrain_frames"], t["pretrain_bc_weight"], t["pretrain_bc_updates"]) == ("orca", 20000, 1.0, 0)
     assert (t["total_frames"], a["replay"], card["encoder"]["name"], card["encoder"]["dim"]) == (28672, "uniform", "gatedgcn", 32)
-    assert (a["actor_base"], a["actor_residual"]) == ("orca", 0.15)
+    assert (a["actor_base"], a["actor_residual"], a["exploration_sigma"]) == ("orca", 0.15, 0.45)
     for seed in (0, 1, 2):
-        shipped = load_checkpoint(SUBMISSIONS / f"gatedgcn_td3_residual_s{seed}" / "checkpoint.pt")["config"]
-        assert training_config(OmegaConf.to_container(compose(["algo=td3", "encoder=gatedgcn", f"seed={seed}"]),
-                                                      resolve=True)) == training_config(shipped)
+        for row, extra in ((f"gatedgcn_td3_residual_sigma045_s{seed}", []),
+                           (f"gatedgcn_td3_residual_s{seed}", ["algo.exploration_sigma=0.3"])):
+            shipped = load_checkpoint(SUBMISSIONS / row / "checkpoint.pt")["config"]
+            composed = compose(["algo=td3", "encoder=gatedgcn", *extra, f"seed={seed}"])
+            assert training_config(OmegaConf.to_container(composed, resolve=True)) == training_config(shipped), row
     assert training_config(OmegaConf.to_container(compose([]), resolve=True)) == training_config(card)
     scratch = load_checkpoint(SUBMISSIONS / "gatedgcn_td3_uniform_5x_s0" / "checkpoint.pt")["config"]
-    composed = compose(["algo=td3", "encoder=gatedgcn", "train=scratch", "algo.actor_base=none"])
+    composed = compose(["algo=td3", "encoder=gatedgcn", "train=scratch", "algo.actor_base=none", "algo.exploration_sigma=0.3"])
     assert training_config(OmegaConf.to_container(composed, resolve=True)) == training_config(scratch)
     # the previous default, a plain actor with the cloning term over 10,000 updates: the warm-start rows
     warm = load_checkpoint(SUBMISSIONS / "gatedgcn_td3_warmstart_s0" / "checkpoint.pt")["config"]
-    composed = compose(["algo=td3", "encoder=gatedgcn", "algo.actor_base=none", "train.pretrain_bc_updates=10000"])
+    composed = compose(["algo=td3", "encoder=gatedgcn", "algo.actor_base=none", "train.pretrain_bc_updates=10000",
+                        "algo.exploration_sigma=0.3"])
     assert training_config(OmegaConf.to_container(composed, resolve=True)) == training_config(warm)
 
 

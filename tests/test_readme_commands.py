@@ -64,7 +64,8 @@ INVOCATIONS: dict[str, list[list[str]]] = {
     "crowdbench run ... algo.critic_lookahead=0": [["run", *RUN, "algo.critic_lookahead=0"]],
     "crowdbench run ... train.human_dropout=0.8": [["run", *RUN, "train.human_dropout=0.8"]],
     "crowdbench run ... train.human_thinning=0.5": [["run", *RUN, "train.human_thinning=0.5"]],
-    "crowdbench run train=scratch algo.actor_base=none": [["run", *RUN, "train=scratch", "algo.actor_base=none"]],
+    "crowdbench run train=scratch algo.actor_base=none algo.exploration_sigma=0.3": [
+        ["run", *RUN, "train=scratch", "algo.actor_base=none", "algo.exploration_sigma=0.3"]],
     "crowdbench run ... train.playback_speeds=[1.0,2.0]": [["run", *RUN, "train.playback_speeds=[1.0,2.0]"]],
     "crowdbench run ... encoder=rgl encoder.similarity=embedded_gaussian":
         [["run", *RUN, "encoder=rgl", "encoder.similarity=embedded_gaussian", "encoder.compact=false"]],

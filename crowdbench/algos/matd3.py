@@ -16,7 +16,7 @@ from tensordict.nn import TensorDictModule
 from crowdbench.algos.actors import BASES
 from crowdbench.algos.offpolicy import KEEP
 from crowdbench.algos.td3 import TD3, TD3Config
-from crowdbench.config_fields import bounded
+from crowdbench.config_fields import bounded, rebound
 from crowdbench.envs.observation import ACTION, GROUP, OBS
 from crowdbench.envs.transforms import SCENE, SCENE_MASK, SceneView
 from crowdbench.models.heads import STATE_ACTION_VALUE
@@ -29,6 +29,7 @@ class MATD3Config(TD3Config):
 
     name: str = bounded("matd3", choices=("matd3",))
     actor_base: str = bounded("none", choices=BASES)  # self-play rows: a plain actor (algos/actors.py)
+    exploration_sigma: float = rebound(TD3Config, "exploration_sigma", 0.3)  # as the self-play rows trained
     critic_dim: int = bounded(64, ge=1)  # the scene critic's per-body width
     critic_hidden: list[int] = field(default_factory=lambda: [128, 128], metadata={"ge": 1, "min_len": 1})
 

@@ -9,7 +9,7 @@ from torchrl.objectives import TD3Loss
 
 from crowdbench.algos.actors import BASES
 from crowdbench.algos.offpolicy import NoisyActorConfig, OffPolicyAlgorithm
-from crowdbench.config_fields import bounded
+from crowdbench.config_fields import bounded, rebound
 
 
 @dataclass
@@ -21,6 +21,8 @@ class TD3Config(NoisyActorConfig):
     policy_noise: float = bounded(0.2, ge=0)  # target policy smoothing
     noise_clip: float = bounded(0.5, ge=0)
     actor_base: str = bounded("orca", choices=BASES)  # the default recipe: a residual on ORCA (algos/actors.py)
+    # the default recipe's exploration noise (the previous default 0.3 and 0.15 did worse; docs/training.md)
+    exploration_sigma: float = rebound(NoisyActorConfig, "exploration_sigma", 0.45)
 
 
 class FirstCriticTD3Loss(TD3Loss):
