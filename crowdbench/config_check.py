@@ -21,7 +21,7 @@ from pathlib import Path
 from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from crowdbench.config_fields import problem, value_range
+from crowdbench.config_fields import field_problem, value_range
 from crowdbench.config_schema import SELECTED, RootConfig
 
 CHECKPOINT_SECTIONS = ("env", "algo", "encoder")
@@ -169,16 +169,9 @@ def _check_bounds(cls, values: dict, raw, selected: dict[str, type], prefix: str
         given = _lookup(raw, f.name)
         if given is None or (isinstance(given, str) and "${" in given):  # a default, an interpolation
             given = value
-        if value is None:
-            continue
-        items = value if isinstance(value, list) else [value]
-        if isinstance(value, list) and len(value) < f.metadata.get("min_len", 0):
-            raise ConfigError(f"{key}: must not be empty (got {short(given)})")
-        for item in items:
-            bad = problem(item, f.metadata)
-            if bad:
-                each = "each item " if isinstance(value, list) else ""
-                raise ConfigError(f"{key}: {each}{bad} (got {short(given)})")
+        bad = field_problem(value, f.metadata)
+        if bad:
+            raise ConfigError(f"{key}: {bad} (got {short(given)})")
 
 
 # ---------------------------------------------------------------------------------------------- entry

@@ -64,6 +64,18 @@ def problem(v, meta) -> str | None:
     return None
 
 
+def field_problem(v, meta) -> str | None:
+    """What is wrong with a field's value ``v`` under its bounds ``meta``: a list's length and each of its
+    items, or the value itself (None: nothing, or no value). A float must be finite, bounded or not."""
+    if v is None:
+        return None
+    if not isinstance(v, list | tuple):
+        return problem(v, meta)
+    if len(v) < meta.get("min_len", 0):
+        return "must not be empty"
+    return next((f"each item {bad}" for bad in (problem(item, meta) for item in v) if bad), None)
+
+
 def check_fields(obj, prefix: str) -> None:
     """Every bounded field of the dataclass instance ``obj`` (``prefix`` names its config section, e.g.
     ``env.``): ``ValueError("<prefix><field>: <problem> (got <value>)")``. A numeric default asks for a
@@ -76,12 +88,6 @@ def check_fields(obj, prefix: str) -> None:
             rng = value_range(f.metadata)
             kind = "an integer" if integer else "a number"
             raise ValueError(f"{prefix}{f.name}: must be {kind}{' ' + rng if rng else ''} (got {v!r})")
-        if not f.metadata or v is None:
-            continue
-        items = v if isinstance(v, list | tuple) else [v]
-        if isinstance(v, list | tuple) and len(v) < f.metadata.get("min_len", 0):
-            raise ValueError(f"{prefix}{f.name}: must not be empty (got {v!r})")
-        for item in items:
-            bad = problem(item, f.metadata)
-            if bad:
-                raise ValueError(f"{prefix}{f.name}: {'each item ' if items is v else ''}{bad} (got {v!r})")
+        bad = field_problem(v, f.metadata)
+        if bad:
+            raise ValueError(f"{prefix}{f.name}: {bad} (got {v!r})")
