@@ -19,8 +19,7 @@ import yaml
 
 from crowdbench import policies
 from crowdbench.algos.registry import names as algo_names
-from crowdbench.config_fields import SEED_BOUNDS, value_range
-from crowdbench.config_fields import problem as bound_problem
+from crowdbench.config_fields import SEED_BOUNDS, problem, value_range
 from crowdbench.envs.lookahead import MODELS as LOOKAHEAD_MODELS
 from crowdbench.envs.lookahead import PRIVILEGED_MODELS
 from crowdbench.leaderboard.text import bad_char, one_line, short
@@ -191,10 +190,10 @@ def validate_schema(path: Path, data) -> dict:
         v = data[key]
         if not isinstance(v, types) or (int in types and isinstance(v, bool) and bool not in types):
             raise SubmissionError(path, key, f"must be {_type_name(types)}, got {short(v)}")
-        problem = _text_problem(key, v) if isinstance(v, str) else _list_problem(key, v) if isinstance(v, list) \
+        bad = _text_problem(key, v) if isinstance(v, str) else _list_problem(key, v) if isinstance(v, list) \
             else _mapping_problem(v) if isinstance(v, dict) else None
-        if problem:
-            raise SubmissionError(path, key, problem)
+        if bad:
+            raise SubmissionError(path, key, bad)
     if name_problem(data["name"]):
         raise SubmissionError(path, "name", name_problem(data["name"]))
     if data["name"] != path.parent.name:
@@ -204,7 +203,7 @@ def validate_schema(path: Path, data) -> dict:
         raise SubmissionError(path, "authors", "must be a non-empty list of names")
     if "link" in data and link_problem(data["link"]):
         raise SubmissionError(path, "link", link_problem(data["link"]))
-    if "seed" in data and bound_problem(data["seed"], SEED_BOUNDS):
+    if "seed" in data and problem(data["seed"], SEED_BOUNDS):
         raise SubmissionError(path, "seed", f"must lie {value_range(SEED_BOUNDS)}, got {short(data['seed'])}")
     for key, rx in (("encoder", WORD_RE), ("encoder_entry_points", WORD_RE), ("encoder_import", IMPORT_RE)):
         if key in data and not rx.fullmatch(data[key]):
