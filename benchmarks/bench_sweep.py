@@ -3,7 +3,7 @@ joblib and Ray launchers (2 workers), and as two processes started by hand (``xa
 
     python benchmarks/bench_sweep.py [--frames 4096] [--out /tmp/bench_sweep]
 
-Each run is one row of ``experiment=leaderboard`` (MP-GatedGCN-RL, TD3) at a reduced budget. Prints the
+Each run is one row of ``experiment=leaderboard_scratch`` (MP-GatedGCN-RL, TD3) at a reduced budget. Prints the
 wall time of each mode, the engine's overhead against the hand-started processes, and Ray's start-up
 costs (starting a local cluster; the first and a later empty task, which include starting a worker
 process). Run it with nothing else running on the machine: the modes compete for the same cores.
@@ -24,7 +24,7 @@ SEEDS = (0, 1, 2)
 
 
 def recipe(frames: int) -> list[str]:
-    return ["experiment=leaderboard", "method=gatedgcn_td3", f"train.total_frames={frames}", "eval.episodes=50",
+    return ["experiment=leaderboard_scratch", "method=gatedgcn_td3", f"train.total_frames={frames}", "eval.episodes=50",
             "train.probe_every=1000000"]
 
 
@@ -89,7 +89,7 @@ def main() -> None:
     by_hand = time.perf_counter() - t
     hand_success = [json.loads((hand / str(s) / "results.json").read_text())["average_paper_scenes"]["success_rate"]
                     for s in SEEDS]
-    print(f"## 3-seed sweep, {args.frames} frames per run (experiment=leaderboard method=gatedgcn_td3), "
+    print(f"## 3-seed sweep, {args.frames} frames per run (experiment=leaderboard_scratch method=gatedgcn_td3), "
           f"{os.cpu_count()} cores")
     print("| mode | wall time (s) | vs two processes by hand | average success per seed |")
     print("|---|---|---|---|")

@@ -138,7 +138,7 @@ def cmd_leaderboard(args: list[str]) -> int:
         readme = default if default.is_file() and BLOCK_START in default.read_text() else None
     docs = a.docs
     if docs is None and a.root is None:
-        docs = [p for p in (Path("docs/results.md"), Path("docs/reproduction.md"))
+        docs = [p for p in (Path("docs/results.md"), Path("docs/reproduction.md"), Path("docs/training.md"))
                 if p.is_file() and blocks_in(p.read_text())]
     tracks = None
     if a.tracks:

@@ -54,7 +54,7 @@ PARTS = [f"{kind}:{o}" for kind, group in (("exp", "experiment"), ("env", "env")
 
 RADIUS_ENCODERS = ('gat', 'gatedgcn', 'gcn')  # the encoders with an edge radius (encoder.radius2)
 # they set algo.replay or algo.actor_base
-OFF_POLICY_EXPERIMENTS = ("paper", "leaderboard", "baselines", "crowdnav", "crowdnav_distill", "reactive", "warmstart",
+OFF_POLICY_EXPERIMENTS = ("paper", "leaderboard_scratch", "baselines", "crowdnav", "crowdnav_distill", "reactive", "warmstart",
                           "leaderboard_long", "selfplay_warmstart", "selfplay_residual")
 ACTOR_CRITIC_EXPERIMENTS = (*OFF_POLICY_EXPERIMENTS, "selfplay_ppo_residual")  # their algo keys are no value keys
 SELFPLAY_EXPERIMENTS = ("selfplay", "selfplay_warmstart", "selfplay_residual", "selfplay_ppo_residual")

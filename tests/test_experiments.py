@@ -82,10 +82,14 @@ def test_every_run_of_every_experiment_composes(name):
 
 @pytest.mark.slow
 def test_leaderboard_sweeps_train_every_row():
-    assert len(sweep_points("leaderboard")) == 15  # 5 methods x 3 seeds
+    assert len(sweep_points("leaderboard")) == 12  # 4 encoders x 3 seeds
+    assert len(sweep_points("leaderboard_scratch")) == 15  # 5 methods x 3 seeds
     assert len(sweep_points("leaderboard_long")) == 9  # 3 encoders x 3 seeds
     names = {compose(p).submission.name for p in sweep_points("leaderboard")}
-    assert {"gatedgcn_td3_s0", "gatedgcn_sac_s2", "gatedgcn_ddpg_s1", "gcn_td3_s0", "mlp_td3_s2"} <= names
+    assert {"gatedgcn_td3_residual_sigma045_s0", "gcn_td3_residual_sigma045_s1", "mlp_td3_residual_sigma045_s2",
+            "rgl_td3_residual_sigma045_s0"} <= names
+    scratch = {compose(p).submission.name for p in sweep_points("leaderboard_scratch")}
+    assert {"gatedgcn_td3_s0", "gatedgcn_sac_s2", "gatedgcn_ddpg_s1", "gcn_td3_s0", "mlp_td3_s2"} <= scratch
     long = {compose(p).submission.name for p in sweep_points("leaderboard_long")}
     assert {"gatedgcn_td3_uniform_5x_s0", "gcn_td3_uniform_5x_s1", "mlp_td3_uniform_5x_s2"} <= long
 
@@ -126,6 +130,11 @@ def test_the_card_command_is_the_shipped_residual_recipe():
             composed = compose(["algo=td3", "encoder=gatedgcn", *extra, f"seed={seed}"])
             assert training_config(OmegaConf.to_container(composed, resolve=True)) == training_config(shipped), row
     assert training_config(OmegaConf.to_container(compose([]), resolve=True)) == training_config(card)
+    # experiment=leaderboard is the card's recipe for every encoder: only the encoder (and the row's name) differ
+    for method, encoder in (("gatedgcn_td3", "gatedgcn"), ("gcn_td3", "gcn"), ("mlp_td3", "mlp"), ("rgl_td3", "rgl")):
+        row = OmegaConf.to_container(compose(["experiment=leaderboard", f"method={method}"]), resolve=True)
+        alone = OmegaConf.to_container(compose(["algo=td3", f"encoder={encoder}"]), resolve=True)
+        assert training_config(row) == training_config(alone), method
     scratch = load_checkpoint(SUBMISSIONS / "gatedgcn_td3_uniform_5x_s0" / "checkpoint.pt")["config"]
     composed = compose(["algo=td3", "encoder=gatedgcn", "train=scratch", "algo.actor_base=none", "algo.exploration_sigma=0.3"])
     assert training_config(OmegaConf.to_container(composed, resolve=True)) == training_config(scratch)
@@ -153,7 +162,7 @@ def test_a_wrong_experiment_is_a_one_line_error(capsys):
 
 
 def test_plus_syntax_is_accepted():
-    assert compose(["+experiment=leaderboard", "+method=gcn_td3"]).submission.name == "gcn_td3_s0"
+    assert compose(["+experiment=leaderboard_scratch", "+method=gcn_td3"]).submission.name == "gcn_td3_s0"
 
 
 def test_the_default_recipe_says_what_to_expect_at_its_start(monkeypatch, capsys, tmp_path):

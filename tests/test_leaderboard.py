@@ -204,7 +204,7 @@ def test_external_encoder_import_and_entry_point(tmp_path, monkeypatch):
 def test_cli_dispatch_and_bad_options(tmp_path, capsys):
     root = tmp_path / "lb"
     add_straight(root)
-    assert cli_main(["leaderboard", "--root", str(root), "--episodes", "1", "--scenes", "eth"]) == 0
+    assert cli_main(["leaderboard", "--root", str(root), "--episodes", "1", "--scenes", "eth", "--tracks", "v1"]) == 0
     assert "Straight to goal" in (root / "README.md").read_text()
     assert cli_main(["leaderboard", "--root", str(root), "--only", "nosuch"]) == 1
     assert "unknown submission(s) nosuch" in capsys.readouterr().out
@@ -388,8 +388,15 @@ def test_docs_blocks_are_rendered_from_the_committed_results():
     reproduction = (REPO / "docs" / "reproduction.md").read_text()
     assert render.blocks_in(docs) == ["docs-results"]
     assert render.blocks_in(reproduction) == ["reproduction-success", "reproduction-nav-time", "reproduction-dangers"]
-    for text in (docs, reproduction):
+    training = (REPO / "docs" / "training.md").read_text()
+    assert render.blocks_in(training) == ["experiment-leaderboard"]
+    for text in (docs, reproduction, training):
         assert render.regenerate(text, results, list(EVAL_SCENES), None) == text
+    # the card's recipe with each encoder: experiment=leaderboard's rows and ORCA, not the rows from scratch
+    block = render.read_block(training, "experiment-leaderboard")
+    assert "| ORCA | 1 | 0.935 [0.918, 0.949] | 0.892 | 0.884 | 0.976 | 0.988 | 1.656 [1.399, 1.913] |" in block
+    assert "| MP-GatedGCN-RL (TD3, gatedgcn, residual on ORCA, exploration sigma 0.45) | 3 | 0.958 [0.948, 0.968] |" in block
+    assert "GCN-RL (TD3, gcn) |" not in block and "Oracle" not in block
     committed = render.read_block(docs, "docs-results")
     assert "| 5 | ORCA | 1 | 0.935 [0.918, 0.949] | 1.656 [1.399, 1.913] |" in committed
     assert "| orca | 0.892 [0.847, 0.925] | 0.884 [0.838, 0.918] |" in committed  # Wilson, from results.json

@@ -34,7 +34,8 @@ def baselines(root: Path) -> None:
     assert run(root, log=log.append, **FAST) == 0, log
 
 
-@pytest.mark.parametrize("damage", ["half", "empty", "list", "binary"])
+# one damage in the quick suite, the others in the full one (each evaluates the baselines again)
+@pytest.mark.parametrize("damage", ["half", *(pytest.param(d, marks=pytest.mark.slow) for d in ("empty", "list", "binary"))])
 def test_an_unreadable_results_file_is_re_evaluated_not_a_crash(tmp_path, ledger, damage):
     """M2: `JSONDecodeError` / `AttributeError: 'list' object has no attribute 'get'` on every run,
     `--force` and `--only OTHER` included, until the file was found and deleted."""

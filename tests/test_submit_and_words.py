@@ -45,6 +45,7 @@ def test_a_silent_exit_has_no_borrowed_last_words(tmp_path):
     assert "last words" not in str(e.value) and "runpy" not in str(e.value), str(e.value)
 
 
+@pytest.mark.slow  # two worker processes; the quick suite keeps one worker test per concern
 def test_the_readme_publishes_no_text_a_worker_wrote(tmp_path):
     add_straight(tmp_path)
     make_learned(tmp_path, "leak", ENCODER + "raise RuntimeError('LEAK ' + open('/etc/hostname').read()[:20])\n")

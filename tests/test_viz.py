@@ -202,6 +202,7 @@ def test_figures_equal_scales_and_a_legend_for_humans(tmp_path, monkeypatch):
         assert ink[0] < 12 and len(blank) - 1 - ink[-1] < 12  # blank margins under 0.1 in (120 dpi)
 
 
+@pytest.mark.slow  # the README's viz --video command is the quick suite's video test
 def test_viz_video_one_frame_per_step(tmp_path, monkeypatch, capsys):
     """`viz --video FILE.gif`: as many frames as the episode has steps, drawn (not blank); an MP4 without
     ffmpeg is a one-line error naming it, written by nothing."""

@@ -301,6 +301,27 @@ def paper_scene_block(metric: str, digits: int):
     return render
 
 
+def experiment_block(experiment: str):
+    """A block of docs/training.md: the entries one experiment trained (``submission.experiment``) beside the
+    ORCA baseline, ranked by success: the paper scenes' average success with its 95% interval, each paper
+    scene's, then dangers per episode and SPL over the paper scenes (mean of a run or over seeds)."""
+    def render(results: list[dict], scenes: list[str], episodes: int | None) -> str:
+        if not all(s in scenes for s in PAPER_SCENES):
+            return "\n\n" + "\n".join(_subset_note(scenes, episodes)) + "\n\n"
+        keep = [r for r in results if r["submission"].get("experiment") == experiment
+                or r["meta"]["kind"] == "baseline" and r["meta"]["submission"] == "orca"]
+        head = ["#", "method", "seeds", "success (paper scenes)", *PAPER_SCENES, "dangers / episode", "SPL"]
+        lines = [*_subset_note(scenes, episodes), "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+        for rank, g in ranked(group_results(keep), lambda g: success_score(g, scenes)):
+            cells = [str(rank or "—"), label(g), str(len(g)), table_cell(g, AVG, "success_rate", 3)[1],
+                     *(table_cell(g, s, "success_rate", 3, intervals=False)[1] for s in PAPER_SCENES),
+                     table_cell(g, AVG, "dangers_per_episode", 3)[1], table_cell(g, AVG, "spl", 3)[1]]
+            lines.append("| " + " | ".join(cells) + " |")
+        return "\n\n" + "\n".join(lines) + "\n\n"
+
+    return render
+
+
 # name -> renderer(results, scenes, episodes); a file's block ``name`` lies between ``markers(name)``
 BLOCKS = {
     "results": render_block,
@@ -308,6 +329,7 @@ BLOCKS = {
     "reproduction-success": paper_scene_block("success_rate", 3),
     "reproduction-nav-time": paper_scene_block("nav_time_s", 2),
     "reproduction-dangers": paper_scene_block("dangers_per_episode", 3),
+    "experiment-leaderboard": experiment_block("leaderboard"),
 }
 
 
