@@ -22,8 +22,8 @@ from crowdbench.app import (
 # nothing of it: only where and how it runs (seed, output, threads, resuming, logging, evaluation, recordings).
 DEFAULT_RECIPE = ("algo=td3", "encoder=gatedgcn")
 RUN_ONLY = ("seed=", "out=", "cpus=", "resume=", "train.logger=", "train.save_buffer=", "eval.", "viz.")
-EXPECTATION = ("the default recipe (a residual on ORCA): about 11 minutes with cpus=2 on an idle 2-core machine, more on "
-               "one core beside another run; expect about 0.958 average success on protocol v1's paper scenes (3 seeds: "
+EXPECTATION = ("the default recipe (a residual on ORCA): 11-12.5 minutes of training with cpus=2 on an idle 2-core machine "
+               "(15 with cpus=1), more beside another run; expect about 0.958 average success on protocol v1's paper scenes (3 seeds: "
                "0.955-0.961; ORCA 0.935; exploration sigma 0.3, the previous default: 0.946; docs/training.md)")
 
 
