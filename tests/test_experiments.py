@@ -82,12 +82,12 @@ def test_every_run_of_every_experiment_composes(name):
 
 @pytest.mark.slow
 def test_leaderboard_sweeps_train_every_row():
-    assert len(sweep_points("leaderboard")) == 12  # 4 encoders x 3 seeds
+    assert len(sweep_points("leaderboard")) == 15  # 5 encoders x 3 seeds
     assert len(sweep_points("leaderboard_scratch")) == 15  # 5 methods x 3 seeds
     assert len(sweep_points("leaderboard_long")) == 9  # 3 encoders x 3 seeds
     names = {compose(p).submission.name for p in sweep_points("leaderboard")}
     assert {"gatedgcn_td3_residual_sigma045_s0", "gcn_td3_residual_sigma045_s1", "mlp_td3_residual_sigma045_s2",
-            "rgl_td3_residual_sigma045_s0"} <= names
+            "rgl_td3_residual_sigma045_s0", "sarl_td3_residual_sigma045_s2"} <= names
     scratch = {compose(p).submission.name for p in sweep_points("leaderboard_scratch")}
     assert {"gatedgcn_td3_s0", "gatedgcn_sac_s2", "gatedgcn_ddpg_s1", "gcn_td3_s0", "mlp_td3_s2"} <= scratch
     long = {compose(p).submission.name for p in sweep_points("leaderboard_long")}
@@ -131,7 +131,8 @@ def test_the_card_command_is_the_shipped_residual_recipe():
             assert training_config(OmegaConf.to_container(composed, resolve=True)) == training_config(shipped), row
     assert training_config(OmegaConf.to_container(compose([]), resolve=True)) == training_config(card)
     # experiment=leaderboard is the card's recipe for every encoder: only the encoder (and the row's name) differ
-    for method, encoder in (("gatedgcn_td3", "gatedgcn"), ("gcn_td3", "gcn"), ("mlp_td3", "mlp"), ("rgl_td3", "rgl")):
+    for method, encoder in (("gatedgcn_td3", "gatedgcn"), ("gcn_td3", "gcn"), ("mlp_td3", "mlp"), ("rgl_td3", "rgl"),
+                            ("sarl_td3", "sarl")):
         row = OmegaConf.to_container(compose(["experiment=leaderboard", f"method={method}"]), resolve=True)
         alone = OmegaConf.to_container(compose(["algo=td3", f"encoder={encoder}"]), resolve=True)
         assert training_config(row) == training_config(alone), method

@@ -78,7 +78,7 @@ INVOCATIONS: dict[str, list[list[str]]] = {
     "crowdbench run ... train.logger=wandb": [["run", *RUN, "train.logger=wandb"]],  # offline: Runner's env
     "crowdbench run -m encoder=gatedgcn,gcn,mlp seed=0,1,2":
         [["run", "-m", "encoder=gatedgcn,gcn,mlp", "seed=0,1,2", *SWEEP, "out={tmp}/sweep9"]],
-    # seed 0 of each of the 4 rows: the leaderboard commands below then evaluate 5 submissions, not 13
+    # seed 0 of each of the 5 rows: the leaderboard commands below then evaluate 6 submissions, not 16
     "crowdbench run -m experiment=leaderboard": [["run", "-m", "experiment=leaderboard", "seed=0", *SWEEP,
                                                   "out={sweep}"]],
     "crowdbench run -m experiment=ppo": [["run", "-m", "experiment=ppo", "seed=0", "env.batch=8", "algo.minibatch_size=64",
