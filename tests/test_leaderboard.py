@@ -361,7 +361,7 @@ def test_readme_block_is_rendered_from_the_committed_results():
     results = committed_results()
     committed = render.read_block((REPO / "README.md").read_text())
     assert render.render_block(results, list(EVAL_SCENES), None) == committed
-    assert "| 5 | ORCA | 1 | 0.935 | 0.892 | 0.884 |" in committed  # ranked by the paper-scene average, first
+    assert "| 6 | ORCA | 1 | 0.935 | 0.892 | 0.884 |" in committed  # ranked by the paper-scene average, first
     assert "ORCA 0.935 [0.918, 0.949] (1.656 [1.399, 1.913] dangers per episode)" in committed
     (orca,) = [r for r in results if r["meta"]["submission"] == "orca"]
     orca["scenes"]["hotel"]["success_rate"]["mean"] = 0.5
@@ -369,9 +369,13 @@ def test_readme_block_is_rendered_from_the_committed_results():
     (row,) = [m for m in rows if m.startswith("[] row 'ORCA': differs")]  # rows named by method, not rank
     fresh = row.split("fresh:")[1]
     rank = int(re.search(r"\| (\d+) \| ORCA \| 1 \| 0\.816 \|", fresh).group(1))
-    assert rank > 5 and "0.500" in fresh  # a lower average, a lower rank
-    ranks = [m for m in rows if m.startswith("[] row '") and "Average" not in m and "ORCA" not in m]
-    assert len(ranks) == 3  # the three entries ORCA fell behind moved up one rank (RGL shared its rank)
+    assert rank > 6 and "0.500" in fresh  # a lower average, a lower rank
+    ranks = [m for m in rows if m.startswith("[] row '") and "Average" not in m and not m.startswith("[] row 'ORCA':")]
+    # the entries ORCA fell behind (shown between 0.816 and 0.935) moved up one rank; one shown at 0.935 shared
+    # ORCA's rank and keeps it
+    passed = [g for g in render.group_results(results) if g[0]["meta"]["entry"] != "ORCA"
+              and 0.816 < round(render.success_score(g, list(EVAL_SCENES)) or 0.0, 3) < 0.935]
+    assert len(ranks) == len(passed) > 3
     (sentence,) = [m for m in rows if m.startswith("[] row 'Average success")]
     assert "ORCA 0.816" in sentence  # the average moved too
 
@@ -396,9 +400,10 @@ def test_docs_blocks_are_rendered_from_the_committed_results():
     block = render.read_block(training, "experiment-leaderboard")
     assert "| ORCA | 1 | 0.935 [0.918, 0.949] | 0.892 | 0.884 | 0.976 | 0.988 | 1.656 [1.399, 1.913] |" in block
     assert "| MP-GatedGCN-RL (TD3, gatedgcn, residual on ORCA, exploration sigma 0.45) | 3 | 0.958 [0.948, 0.968] |" in block
+    assert "| 1 | RGL (TD3, rgl, residual on ORCA, exploration sigma 0.45) | 3 | 0.971 [0.959, 0.981] |" in block
     assert "GCN-RL (TD3, gcn) |" not in block and "Oracle" not in block
     committed = render.read_block(docs, "docs-results")
-    assert "| 5 | ORCA | 1 | 0.935 [0.918, 0.949] | 1.656 [1.399, 1.913] |" in committed
+    assert "| 6 | ORCA | 1 | 0.935 [0.918, 0.949] | 1.656 [1.399, 1.913] |" in committed
     assert "| orca | 0.892 [0.847, 0.925] | 0.884 [0.838, 0.918] |" in committed  # Wilson, from results.json
     (orca,) = [r for r in results if r["meta"]["submission"] == "orca"]
     orca["scenes"]["students003"]["jerk"]["mean"] = 9.0
