@@ -24,7 +24,11 @@ PAPER = ("students003", "zara2", "hotel", "eth")
 
 
 def load(name: str, track: str) -> dict:
-    path = ROOT / name / ("results.json" if track == "v1" else f"{track}.json")
+    from crowdbench.leaderboard.tracks import TRACKS
+
+    if track not in TRACKS:
+        raise SystemExit(f"paired_outcomes: unknown --track {track!r}; valid: {', '.join(TRACKS)}")
+    path = ROOT / name / TRACKS[track].results_file
     try:
         return json.loads(path.read_text())
     except OSError as e:
