@@ -42,14 +42,15 @@ RECIPES = {
     "td3_orca": (["train=scratch", "train.pretrain=orca", "train.pretrain_bc_weight=1", "train.pretrain_bc_updates=10000",
                   "algo.exploration_sigma=0.3"],
                  7168),
-    # RGL with its bounded similarity at the from-scratch recipe (experiment=leaderboard_scratch: 28,672 frames; 0.935 ± 0.013 on v1)
+    # RGL with its bounded similarity at the from-scratch recipe (experiment=leaderboard_scratch: 28,672 frames;
+    # 0.935 ± 0.013 on v1)
     "rgl": (["experiment=baselines", "method=rgl_td3", "algo.exploration_sigma=0.3"], 3584),
     # the same with the ORCA warm start and cloning term of td3_orca: the named experiment
     "rgl_orca": (["experiment=warmstart", "algo.exploration_sigma=0.3"], 3584),
     # the card's command, crowdbench run algo=td3 encoder=gatedgcn: the default config (a residual on ORCA)
     "default": ([], 3584),
-    # MP-GatedGCN with the same warm start at the from-scratch recipe (experiment=leaderboard_scratch: prioritized replay, 28,672 frames); with
-    # algo.replay=uniform it is the default recipe's training config
+    # MP-GatedGCN with the same warm start at the from-scratch recipe (experiment=leaderboard_scratch: prioritized
+    # replay, 28,672 frames); with algo.replay=uniform it is the default recipe's training config
     "gatedgcn_orca": (["experiment=warmstart", "method=gatedgcn_td3", "algo.exploration_sigma=0.3"], 3584),
 }
 
